@@ -1,0 +1,24 @@
+# crossview — the two commands a newcomer needs are `make demo` and `make test`.
+SHELL := /bin/bash
+ORT_DYLIB_PATH ?= $(CURDIR)/.cache/onnxruntime/libonnxruntime.so.1.31.1
+export ORT_DYLIB_PATH
+
+.PHONY: setup build test lint fmt
+
+## setup: fetch the ONNX Runtime library from PyPI into .cache/ (once)
+setup:
+	@bash scripts/setup.sh
+
+build: setup
+	cargo build --release
+
+## test: the whole test suite (unit, property, integration, end-to-end)
+test: setup
+	cargo test --all-targets
+
+lint:
+	cargo fmt --check
+	cargo clippy --all-targets -- -D warnings
+
+fmt:
+	cargo fmt

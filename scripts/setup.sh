@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Fetches the ONNX Runtime shared library (from the PyPI wheel onnxruntime==1.31.1) into the
+# project-local cache .cache/onnxruntime/ when it is absent. Idempotent; needs python3 + pip.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ORT_VERSION=1.31.1
+DEST=.cache/onnxruntime
+LIB="$DEST/libonnxruntime.so.$ORT_VERSION"
+if [ -f "$LIB" ]; then
+  exit 0
+fi
+mkdir -p "$DEST/wheel"
+echo "setup: fetching onnxruntime==$ORT_VERSION from PyPI" >&2
+python3 -m pip download --quiet --no-deps --only-binary=:all: \
+  --python-version 3.11 --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 \
+  --platform manylinux_2_17_x86_64 --implementation cp \
+  -d "$DEST/wheel" "onnxruntime==$ORT_VERSION"
+WHEEL=$(ls "$DEST"/wheel/onnxruntime-"$ORT_VERSION"-*.whl | head -n1)
+python3 - "$WHEEL" "$DEST" "$ORT_VERSION" <<'PY'
+import sys, zipfile, os
+wheel, dest, ver = sys.argv[1:]
+name = f"onnxruntime/capi/libonnxruntime.so.{ver}"
+with zipfile.ZipFile(wheel) as z:
+    data = z.read(name)
+tmp = os.path.join(dest, f"libonnxruntime.so.{ver}.tmp")
+with open(tmp, "wb") as f:
+    f.write(data)
+os.replace(tmp, os.path.join(dest, f"libonnxruntime.so.{ver}"))
+PY
+rm -rf "$DEST/wheel"
+echo "setup: ONNX Runtime at $LIB" >&2

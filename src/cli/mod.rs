@@ -1,0 +1,21 @@
+//! The `crossview` command line: argument parsing (clap, with environment fallbacks) and one
+//! handler per subcommand. Kept thin: each handler calls into the library.
+use clap::{Parser, Subcommand};
+
+/// Self-supervised multi-view person association: train, evaluate, serve.
+#[derive(Debug, Parser)]
+#[command(name = "crossview", version, about)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// Subcommands.
+#[derive(Debug, Subcommand)]
+pub enum Command {}
+
+/// Entry point used by `main`.
+pub fn run() -> anyhow::Result<()> {
+    let cli = Cli::parse();
+    match cli.command {}
+}

@@ -1,0 +1,9 @@
+//! The method (SPEC §2–§3), free of I/O: scene and detection types, box normalisation,
+//! distances, Hungarian matching and global identities.
+
+pub mod association;
+pub mod identity;
+pub mod matching;
+pub mod types;
+
+pub use types::{Batch, CameraSpec, Detection, Frame, SceneSpec};

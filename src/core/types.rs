@@ -1,0 +1,169 @@
+//! Scene, camera, detection and frame types shared by every layer. Their serde form is the
+//! SPEC §7 recording/API format.
+use serde::{Deserialize, Serialize};
+
+use crate::{Error, Result};
+
+/// One camera of a scene: its name and image size in pixels.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CameraSpec {
+    pub name: String,
+    pub width: u32,
+    pub height: u32,
+}
+
+/// A scene: a named set of synchronized static cameras, in camera-index order.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SceneSpec {
+    pub name: String,
+    pub cameras: Vec<CameraSpec>,
+}
+
+impl SceneSpec {
+    /// Index of the camera called `name`, or [`Error::UnknownCamera`].
+    pub fn camera_index(&self, name: &str) -> Result<usize> {
+        self.cameras
+            .iter()
+            .position(|c| c.name == name)
+            .ok_or_else(|| Error::UnknownCamera {
+                scene: self.name.clone(),
+                camera: name.to_string(),
+            })
+    }
+}
+
+fn default_score() -> f32 {
+    1.0
+}
+
+fn is_default_score(s: &f32) -> bool {
+    *s == 1.0
+}
+
+/// One detected box. `bbox` is `[x1, y1, x2, y2]` in pixels of its camera's image.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Detection {
+    pub bbox: [f32; 4],
+    /// Detector confidence, default 1.
+    #[serde(default = "default_score", skip_serializing_if = "is_default_score")]
+    pub score: f32,
+    /// Ground-truth identity (evaluation only; never used by training or inference).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub id: Option<u64>,
+    /// Optional Re-ID appearance vector; all vectors of a scene share one length.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub appearance: Option<Vec<f32>>,
+}
+
+impl Detection {
+    /// A detection with score 1 and no id or appearance.
+    pub fn new(bbox: [f32; 4]) -> Self {
+        Detection {
+            bbox,
+            score: 1.0,
+            id: None,
+            appearance: None,
+        }
+    }
+
+    /// The box normalised by its camera's image size (SPEC §2): `[x1/W, y1/H, x2/W, y2/H]`.
+    /// Values outside [0, 1] are kept (no clamping).
+    pub fn normalized(&self, cam: &CameraSpec) -> [f32; 4] {
+        let (w, h) = (cam.width as f32, cam.height as f32);
+        [
+            self.bbox[0] / w,
+            self.bbox[1] / h,
+            self.bbox[2] / w,
+            self.bbox[3] / h,
+        ]
+    }
+
+    /// Rejects boxes and values that would poison the matcher: non-finite or negative
+    /// coordinates, inverted or empty boxes, scores outside [0, 1], non-finite appearance
+    /// values or an appearance length other than `appearance_len` (when given).
+    /// `field` prefixes error messages, e.g. `detections[3]`.
+    pub fn validate(&self, field: &str, appearance_len: Option<usize>) -> Result<()> {
+        let [x1, y1, x2, y2] = self.bbox;
+        if self.bbox.iter().any(|v| !v.is_finite()) {
+            return Err(Error::invalid(
+                format!("{field}.bbox"),
+                format!("coordinates must be finite, got {:?}", self.bbox),
+            ));
+        }
+        if self.bbox.iter().any(|&v| v < 0.0) {
+            return Err(Error::invalid(
+                format!("{field}.bbox"),
+                format!("coordinates must be non-negative, got {:?}", self.bbox),
+            ));
+        }
+        if x2 <= x1 || y2 <= y1 {
+            return Err(Error::invalid(
+                format!("{field}.bbox"),
+                format!("box must have x2 > x1 and y2 > y1, got {:?}", self.bbox),
+            ));
+        }
+        if !self.score.is_finite() || !(0.0..=1.0).contains(&self.score) {
+            return Err(Error::invalid(
+                format!("{field}.score"),
+                format!("must be within [0, 1], got {}", self.score),
+            ));
+        }
+        if let Some(app) = &self.appearance {
+            if let Some(len) = appearance_len
+                && app.len() != len
+            {
+                return Err(Error::invalid(
+                    format!("{field}.appearance"),
+                    format!("expected {len} values, got {}", app.len()),
+                ));
+            }
+            if app.is_empty() {
+                return Err(Error::invalid(format!("{field}.appearance"), "is empty"));
+            }
+            if let Some(i) = app.iter().position(|v| !v.is_finite()) {
+                return Err(Error::invalid(
+                    format!("{field}.appearance[{i}]"),
+                    "must be finite",
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// One camera's detections for one frame: a line of a recording, or one pushed batch.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Batch {
+    pub camera: String,
+    pub frame_id: u64,
+    pub detections: Vec<Detection>,
+}
+
+/// All cameras' detections for one synchronized frame, indexed by camera index.
+/// `views[c] == None` means camera `c` did not report this frame (a partial frame);
+/// `Some(vec![])` means it reported and saw nobody.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Frame {
+    pub frame_id: u64,
+    pub views: Vec<Option<Vec<Detection>>>,
+}
+
+impl Frame {
+    /// An empty frame with `num_cameras` unreported views.
+    pub fn new(frame_id: u64, num_cameras: usize) -> Self {
+        Frame {
+            frame_id,
+            views: vec![None; num_cameras],
+        }
+    }
+
+    /// True when every camera reported.
+    pub fn is_complete(&self) -> bool {
+        self.views.iter().all(Option::is_some)
+    }
+
+    /// Total number of boxes over all reported views.
+    pub fn num_boxes(&self) -> usize {
+        self.views.iter().flatten().map(Vec::len).sum()
+    }
+}

@@ -1,0 +1,1 @@
+//! Data I/O: the JSONL recording format (SPEC §7), dataset importers and chronological splits.

@@ -1,0 +1,23 @@
+//! crossview: self-supervised, calibration-free multi-view person association (Self-MVA).
+//!
+//! Layout:
+//! - [`core`]: the method itself — box features, distances, Hungarian matching, global identities.
+//! - [`model`]: the encoder file contract (SPEC §8): weights, ONNX export, the ONNX Runtime encoder.
+//! - [`io`]: the JSONL recording format (SPEC §7), dataset importers, chronological splits.
+//! - [`eval`]: the paper's metrics (SPEC §5) and the evaluation driver.
+//! - [`sim`]: a synthetic multi-camera scene simulator with ground truth.
+//! - [`train`]: the self-supervised trainer (SPEC §2–§4).
+//! - [`serve`]: the streaming association service (gRPC + HTTP).
+//! - [`cli`]: the `crossview` command line.
+
+pub mod cli;
+pub mod core;
+pub mod error;
+pub mod eval;
+pub mod io;
+pub mod model;
+pub mod serve;
+pub mod sim;
+pub mod train;
+
+pub use error::{Error, Result};

@@ -1,0 +1,4 @@
+//! The `crossview` command line: a thin edge over the library.
+fn main() -> anyhow::Result<()> {
+    crossview::cli::run()
+}

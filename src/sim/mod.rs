@@ -1,0 +1,1 @@
+//! Synthetic multi-camera scene simulator with ground-truth identities.
