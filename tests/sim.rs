@@ -1,0 +1,291 @@
+//! Simulator integration tests: determinism, complete frames, the CLI output format and the
+//! calibrated sanity check (ground truth and geometry agree).
+use crossview::core::{Batch, Detection};
+use crossview::sim::{
+    AppearanceConfig, BODY_RADIUS_M, DetectorNoise, SimConfig, Simulator, ground_distances,
+    simulate,
+};
+use ndarray::Array2;
+
+fn small(preset: &str, frames: u64, seed: u64) -> SimConfig {
+    let mut cfg = SimConfig::preset(preset).unwrap();
+    cfg.frames = frames;
+    cfg.seed = seed;
+    cfg
+}
+
+#[test]
+fn same_seed_same_recording_other_seed_differs() {
+    let mut cfg = small("square4", 40, 7);
+    cfg.appearance = Some(AppearanceConfig::default());
+    let a = simulate(&cfg).unwrap();
+    let b = simulate(&cfg).unwrap();
+    assert_eq!(a, b);
+    cfg.seed = 8;
+    let c = simulate(&cfg).unwrap();
+    assert_ne!(a, c);
+}
+
+#[test]
+fn noise_settings_do_not_change_the_people() {
+    // one seed: clean ground truth and noisy detections describe the same scene
+    let mut cfg = small("pair", 30, 3);
+    cfg.detector = DetectorNoise::none();
+    let mut clean = Simulator::new(&cfg).unwrap();
+    cfg.detector = DetectorNoise::default();
+    cfg.appearance = Some(AppearanceConfig::default());
+    let mut noisy = Simulator::new(&cfg).unwrap();
+    for _ in 0..30 {
+        assert_eq!(clean.people(), noisy.people());
+        clean.next_frame().unwrap();
+        noisy.next_frame().unwrap();
+    }
+}
+
+#[test]
+fn every_frame_has_a_valid_batch_for_every_camera() {
+    let mut cfg = small("wildtrack", 30, 1);
+    cfg.first_frame_id = 100;
+    cfg.frame_step = 5;
+    cfg.appearance = Some(AppearanceConfig {
+        dim: 16,
+        ..AppearanceConfig::default()
+    });
+    let rec = simulate(&cfg).unwrap();
+    assert_eq!(rec.scene.cameras.len(), 7);
+    assert!(
+        rec.scene
+            .cameras
+            .iter()
+            .all(|c| c.width == 1920 && c.height == 1080)
+    );
+    assert_eq!(rec.frames.len(), 30);
+    let (mut boxes, mut empty, mut fps) = (0, 0, 0);
+    for (k, f) in rec.frames.iter().enumerate() {
+        assert_eq!(f.frame_id, 100 + 5 * k as u64);
+        assert!(f.is_complete());
+        assert_eq!(f.views.len(), 7);
+        for (c, v) in f.views.iter().enumerate() {
+            let v = v.as_ref().unwrap();
+            empty += v.is_empty() as usize;
+            for (i, d) in v.iter().enumerate() {
+                d.validate(&format!("frame {k} cam {c} det {i}"), Some(16))
+                    .unwrap();
+                assert!(d.bbox[2] <= 1920.0 && d.bbox[3] <= 1080.0);
+                fps += d.id.is_none() as usize;
+            }
+            boxes += v.len();
+        }
+    }
+    // a busy scene: ~10 people per view on average, a few false positives
+    assert!(boxes > 30 * 7 * 4, "only {boxes} boxes");
+    assert!(fps > 0, "no false positives with the default detector");
+    let _ = empty;
+}
+
+#[test]
+fn no_ids_leaves_ids_out() {
+    let mut cfg = small("pair", 10, 2);
+    cfg.ids = false;
+    let rec = simulate(&cfg).unwrap();
+    assert!(
+        rec.frames
+            .iter()
+            .all(|f| { f.views.iter().flatten().flatten().all(|d| d.id.is_none()) })
+    );
+    assert!(rec.frames.iter().map(|f| f.num_boxes()).sum::<usize>() > 0);
+}
+
+#[test]
+fn invalid_configs_are_rejected_with_the_field_named() {
+    let mut cfg = small("pair", 10, 2);
+    cfg.fps = f64::NAN;
+    assert!(
+        Simulator::new(&cfg)
+            .unwrap_err()
+            .to_string()
+            .contains("fps")
+    );
+    let mut cfg = small("pair", 10, 2);
+    cfg.detector.miss_rate = -0.1;
+    assert!(
+        Simulator::new(&cfg)
+            .unwrap_err()
+            .to_string()
+            .contains("miss_rate")
+    );
+    let mut cfg = small("pair", 10, 2);
+    cfg.frame_step = 0;
+    assert!(Simulator::new(&cfg).is_err());
+    assert!(SimConfig::preset("mall").is_err());
+}
+
+/// Minimum-cost assignment (rows and columns in any proportion), via pathfinding.
+fn assign(cost: &Array2<f32>) -> Vec<(usize, usize)> {
+    let (n, m) = cost.dim();
+    if n == 0 || m == 0 {
+        return vec![];
+    }
+    let transpose = n > m;
+    let (r, c) = if transpose { (m, n) } else { (n, m) };
+    let w = pathfinding::matrix::Matrix::from_fn(r, c, |(i, j)| {
+        let v = if transpose {
+            cost[[j, i]]
+        } else {
+            cost[[i, j]]
+        };
+        -((v as f64 * 1000.0).round() as i64)
+    });
+    let (_, cols) = pathfinding::kuhn_munkres::kuhn_munkres(&w);
+    cols.into_iter()
+        .enumerate()
+        .map(|(i, j)| if transpose { (j, i) } else { (i, j) })
+        .collect()
+}
+
+/// SPEC §5-style pairwise accuracy of ground-plane matching with a distance gate (metres).
+fn calibrated_accuracy(cfg: &SimConfig, gate: f32) -> (f64, usize) {
+    let sim = Simulator::new(cfg).unwrap();
+    let cams = sim.cameras().to_vec();
+    let (mut good, mut total) = (0usize, 0usize);
+    for frame in sim {
+        // boxes cut at the image border do not show where the feet are: leave them out
+        let views: Vec<Vec<Detection>> = frame
+            .views
+            .iter()
+            .zip(&cams)
+            .map(|(v, cam)| {
+                let (w, h) = (cam.spec.width as f32, cam.spec.height as f32);
+                v.as_ref()
+                    .unwrap()
+                    .iter()
+                    .filter(|d| d.bbox[0] > 0.5 && d.bbox[2] < w - 0.5 && d.bbox[3] < h - 0.5)
+                    .cloned()
+                    .collect()
+            })
+            .collect();
+        for i in 0..views.len() {
+            for j in i + 1..views.len() {
+                let (a, b) = (&views[i], &views[j]);
+                if a.is_empty() || b.is_empty() {
+                    continue;
+                }
+                let d = ground_distances(&cams[i], a, &cams[j], b, BODY_RADIUS_M);
+                // gate before assigning, so far-apart leftovers cannot trade partners
+                let kept: Vec<(usize, usize)> = assign(&d.mapv(|v| v.min(gate)))
+                    .into_iter()
+                    .filter(|&(x, y)| d[[x, y]] < gate)
+                    .collect();
+                let ids_b: Vec<u64> = b.iter().map(|d| d.id.unwrap()).collect();
+                let ids_a: Vec<u64> = a.iter().map(|d| d.id.unwrap()).collect();
+                let mut union: Vec<u64> = ids_a.iter().chain(&ids_b).copied().collect();
+                union.sort_unstable();
+                union.dedup();
+                let correct = kept.iter().filter(|&&(x, y)| ids_a[x] == ids_b[y]).count();
+                let tn_a = (0..a.len())
+                    .filter(|x| !kept.iter().any(|k| k.0 == *x) && !ids_b.contains(&ids_a[*x]))
+                    .count();
+                let tn_b = (0..b.len())
+                    .filter(|y| !kept.iter().any(|k| k.1 == *y) && !ids_a.contains(&ids_b[*y]))
+                    .count();
+                good += correct + tn_a + tn_b;
+                total += union.len();
+            }
+        }
+    }
+    (good as f64 / total as f64, total)
+}
+
+#[test]
+fn calibrated_ground_plane_matching_is_nearly_perfect_without_detector_noise() {
+    for preset in ["square4", "wildtrack"] {
+        let mut cfg = small(preset, 25, 11);
+        cfg.detector = DetectorNoise::none();
+        // full boxes: the bottom-centre of a box is the person's feet
+        cfg.render.shrink_occluded = false;
+        let (acc, n) = calibrated_accuracy(&cfg, 0.4);
+        assert!(n > 500, "{preset}: too few identities compared ({n})");
+        assert!(
+            acc > 0.99,
+            "{preset}: calibrated accuracy {acc:.4} over {n}"
+        );
+    }
+}
+
+#[test]
+fn detector_noise_makes_the_calibrated_baseline_imperfect() {
+    // the realism knobs bite: a model that works on noisy data is not fooled by it
+    let mut cfg = small("square4", 25, 11);
+    cfg.detector = DetectorNoise {
+        jitter: 0.08,
+        ..DetectorNoise::default()
+    };
+    cfg.ids = true;
+    let sim = Simulator::new(&cfg).unwrap();
+    let cams = sim.cameras().to_vec();
+    let mut far = 0usize;
+    let mut pairs = 0usize;
+    for frame in sim {
+        let a = frame.views[0].as_ref().unwrap();
+        let b = frame.views[1].as_ref().unwrap();
+        let d = ground_distances(&cams[0], a, &cams[1], b, BODY_RADIUS_M);
+        for (x, da) in a.iter().enumerate() {
+            for (y, db) in b.iter().enumerate() {
+                if da.id.is_some() && da.id == db.id {
+                    pairs += 1;
+                    far += (d[[x, y]] > 0.3) as usize;
+                }
+            }
+        }
+    }
+    assert!(pairs > 50);
+    assert!(
+        far > 0,
+        "noisy boxes should sometimes land far from the truth"
+    );
+}
+
+#[test]
+fn cli_writes_a_spec_recording_byte_identically() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |name: &str, extra: &[&str]| {
+        let out = dir.path().join(name);
+        let mut args = vec![
+            "crossview",
+            "simulate",
+            "--preset",
+            "pair",
+            "--frames",
+            "20",
+            "--seed",
+            "5",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        let cli = <crossview::cli::Cli as clap::Parser>::try_parse_from(args).unwrap();
+        match cli.command {
+            crossview::cli::Command::Simulate(a) => crossview::cli::simulate::run(a).unwrap(),
+            #[allow(unreachable_patterns)]
+            _ => unreachable!(),
+        }
+        std::fs::read_to_string(out).unwrap()
+    };
+    let a = run("a.jsonl", &[]);
+    let b = run("b.jsonl", &[]);
+    assert_eq!(a, b);
+    let lines: Vec<&str> = a.lines().collect();
+    assert_eq!(lines.len(), 1 + 20 * 2);
+    let header: serde_json::Value = serde_json::from_str(lines[0]).unwrap();
+    assert_eq!(header["scene"]["name"], "pair");
+    assert_eq!(header["scene"]["cameras"][1]["width"], 1280);
+    for (k, line) in lines[1..].iter().enumerate() {
+        let batch: Batch = serde_json::from_str(line).unwrap();
+        assert_eq!(batch.frame_id, (k / 2) as u64);
+        assert_eq!(batch.camera, ["south", "west"][k % 2]);
+    }
+    assert!(a.contains("\"id\":"));
+    let no_ids = run("c.jsonl", &["--no-ids", "--appearance-dim", "8"]);
+    assert!(!no_ids.contains("\"id\":"));
+    assert!(no_ids.contains("\"appearance\":"));
+}
