@@ -237,6 +237,25 @@ fn duplicate_batch_is_rejected() {
 }
 
 #[test]
+fn duplicate_check_can_be_switched_off_for_streams() {
+    let line = r#"{"camera": "b", "frame_id": 70, "detections": []}"#;
+    let text = format!("{HEADER}\n{line}\n{line}\n");
+    let reader = RecordingReader::new(text.as_bytes(), "mem").unwrap();
+    let results: Vec<_> = reader.collect();
+    assert!(
+        results[1]
+            .as_ref()
+            .unwrap_err()
+            .to_string()
+            .contains("duplicate batch")
+    );
+    let reader = RecordingReader::new(text.as_bytes(), "mem")
+        .unwrap()
+        .without_duplicate_check();
+    assert_eq!(reader.filter(Result::is_ok).count(), 2);
+}
+
+#[test]
 fn invalid_detection_names_the_field() {
     let (line, msg) = format_error(&[
         HEADER,
@@ -368,4 +387,91 @@ fn helpers_filter_strip_and_write_back() {
 fn missing_file_is_io_error() {
     let err = read_recording("/nonexistent/rec.jsonl").unwrap_err();
     assert!(matches!(err, Error::Io { .. }), "{err}");
+}
+
+#[test]
+fn duplicates_are_found_with_more_than_64_cameras() {
+    let cameras: Vec<CameraSpec> = (0..70)
+        .map(|i| CameraSpec {
+            name: format!("c{i}"),
+            width: 10,
+            height: 10,
+        })
+        .collect();
+    let scene = SceneSpec {
+        name: "wide".into(),
+        cameras,
+    };
+    let mut writer = RecordingWriter::new(Vec::new(), "mem", &scene).unwrap();
+    for cam in ["c1", "c65", "c66", "c65"] {
+        writer
+            .write_batch(&Batch {
+                camera: cam.into(),
+                frame_id: 3,
+                detections: vec![],
+            })
+            .unwrap();
+    }
+    let bytes = writer.finish().unwrap();
+    let results: Vec<_> = RecordingReader::new(bytes.as_slice(), "mem")
+        .unwrap()
+        .collect();
+    assert!(results[..3].iter().all(Result::is_ok));
+    match &results[3] {
+        Err(Error::Format { line, message, .. }) => {
+            assert_eq!(*line, 5);
+            assert!(
+                message.contains("camera 'c65' already reported frame 3"),
+                "{message}"
+            );
+        }
+        other => panic!("{other:?}"),
+    }
+}
+
+#[test]
+fn cli_split_reads_stdin_and_writes_stdout() {
+    use std::process::{Command, Stdio};
+    let mut frames = Vec::new();
+    for f in 0..20u64 {
+        let mut frame = Frame::new(f, 2);
+        frame.views[0] = Some(vec![det(1.0, Some(f))]);
+        frame.views[1] = Some(vec![]);
+        frames.push(frame);
+    }
+    let rec = Recording {
+        scene: scene(),
+        frames,
+    };
+    let mut input = RecordingWriter::new(Vec::new(), "mem", &rec.scene).unwrap();
+    for frame in &rec.frames {
+        input.write_frame(frame).unwrap();
+    }
+    let input = input.finish().unwrap();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_crossview"))
+        .args(["split", "--data", "-", "--part", "test", "--out", "-"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    child.stdin.take().unwrap().write_all(&input).unwrap();
+    let out = child.wait_with_output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // 20 frames: test = ceil(20/10) = 2 frames (18, 19); summary goes to stderr.
+    let back = RecordingReader::new(out.stdout.as_slice(), "stdout").unwrap();
+    let batches: Vec<Batch> = back.collect::<Result<_, _>>().unwrap();
+    assert_eq!(
+        Recording::from_batches(scene(), batches).unwrap(),
+        rec.filter_frames(18..)
+    );
+    let summary = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        summary.contains("2 frames (18..=19)") && summary.contains("2 cameras"),
+        "{summary}"
+    );
 }

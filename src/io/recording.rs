@@ -8,7 +8,7 @@
 //! Every problem in a file is an [`Error::Format`] naming the source, the 1-based line and the
 //! problem (malformed JSON, missing header, unknown camera, duplicate batch, invalid detection,
 //! inconsistent appearance length).
-use std::collections::{BTreeMap, HashSet};
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::fs::File;
 use std::io::{BufRead, BufReader, BufWriter, Read, Write};
 use std::ops::RangeBounds;
@@ -107,7 +107,9 @@ pub struct RecordingReader<R> {
     buf: String,
     scene: SceneSpec,
     appearance: AppearanceLen,
-    seen: HashSet<(usize, u64)>,
+    /// Per frame id, a bitset of the cameras that reported it (duplicate detection);
+    /// `None` when the check is switched off.
+    seen: Option<HashMap<u64, Box<[u64]>>>,
     done: bool,
 }
 
@@ -138,7 +140,7 @@ impl<R: BufRead> RecordingReader<R> {
                 cameras: Vec::new(),
             },
             appearance: AppearanceLen::default(),
-            seen: HashSet::new(),
+            seen: Some(HashMap::new()),
             done: false,
         };
         let Some(line) = this.next_line()? else {
@@ -164,6 +166,13 @@ impl<R: BufRead> RecordingReader<R> {
     /// The scene declared by the header.
     pub fn scene(&self) -> &SceneSpec {
         &self.scene
+    }
+
+    /// Switches off duplicate-batch detection, which keeps one small bitset per frame id
+    /// seen; for unbounded streams whose memory must stay flat.
+    pub fn without_duplicate_check(mut self) -> Self {
+        self.seen = None;
+        self
     }
 
     /// The 1-based number of the last line read.
@@ -219,7 +228,17 @@ impl<R: BufRead> RecordingReader<R> {
                 ),
             )
         })?;
-        if !self.seen.insert((cam, batch.frame_id)) {
+        let words = self.scene.cameras.len().div_ceil(64);
+        let first_report = self.seen.as_mut().is_none_or(|seen| {
+            let bits = seen
+                .entry(batch.frame_id)
+                .or_insert_with(|| vec![0u64; words].into_boxed_slice());
+            let (word, bit) = (cam / 64, 1u64 << (cam % 64));
+            let fresh = bits[word] & bit == 0;
+            bits[word] |= bit;
+            fresh
+        });
+        if !first_report {
             return Err(self.format_err(
                 self.line_no,
                 format!(
