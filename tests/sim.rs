@@ -285,6 +285,12 @@ fn cli_writes_a_spec_recording_byte_identically() {
         assert_eq!(batch.camera, ["south", "west"][k % 2]);
     }
     assert!(a.contains("\"id\":"));
+    // the shared reader accepts it and sees what the library simulates
+    let rec = crossview::io::recording::read_recording(dir.path().join("a.jsonl")).unwrap();
+    let mut cfg = SimConfig::preset("pair").unwrap();
+    cfg.frames = 20;
+    cfg.seed = 5;
+    assert_eq!(rec, simulate(&cfg).unwrap());
     let no_ids = run("c.jsonl", &["--no-ids", "--appearance-dim", "8"]);
     assert!(!no_ids.contains("\"id\":"));
     assert!(no_ids.contains("\"appearance\":"));

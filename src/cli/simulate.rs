@@ -1,11 +1,9 @@
 //! `crossview simulate`: write a synthetic multi-camera recording (SPEC §7 JSONL).
-use std::io::{BufWriter, Write};
 use std::path::PathBuf;
 
-use anyhow::Context;
 use clap::Args;
 
-use crate::core::{Batch, Frame, SceneSpec};
+use crate::io::recording::RecordingWriter;
 use crate::sim::{AppearanceConfig, DetectorNoise, SceneConfig, SimConfig, Simulator};
 
 /// Options of `crossview simulate`.
@@ -117,52 +115,20 @@ pub fn run(args: SimulateArgs) -> anyhow::Result<()> {
     let cfg = args.config()?;
     let mut sim = Simulator::new(&cfg)?;
     let start = std::time::Instant::now();
-    let out: Box<dyn Write> = if args.out.as_os_str() == "-" {
-        Box::new(std::io::stdout().lock())
-    } else {
-        let f = std::fs::File::create(&args.out)
-            .with_context(|| format!("cannot create {}", args.out.display()))?;
-        Box::new(f)
-    };
-    let mut out = BufWriter::with_capacity(1 << 20, out);
-    let scene = sim.scene().clone();
-    write_header(&mut out, &scene)?;
+    let mut writer = RecordingWriter::create(&args.out, sim.scene())?;
     let mut boxes = 0usize;
     while let Some(frame) = sim.next_frame() {
         boxes += frame.num_boxes();
-        write_frame(&mut out, &scene, frame)?;
+        writer.write_frame(&frame)?;
     }
-    out.flush()
-        .with_context(|| format!("cannot write {}", args.out.display()))?;
+    writer.finish()?;
     tracing::info!(
+        out = %args.out.display(),
         frames = cfg.frames,
-        cameras = scene.cameras.len(),
+        cameras = sim.scene().cameras.len(),
         boxes,
         seconds = start.elapsed().as_secs_f64(),
         "simulated recording written"
     );
-    Ok(())
-}
-
-fn write_header(out: &mut impl Write, scene: &SceneSpec) -> anyhow::Result<()> {
-    #[derive(serde::Serialize)]
-    struct Header<'a> {
-        scene: &'a SceneSpec,
-    }
-    serde_json::to_writer(&mut *out, &Header { scene })?;
-    out.write_all(b"\n")?;
-    Ok(())
-}
-
-fn write_frame(out: &mut impl Write, scene: &SceneSpec, frame: Frame) -> anyhow::Result<()> {
-    for (cam, view) in scene.cameras.iter().zip(frame.views) {
-        let batch = Batch {
-            camera: cam.name.clone(),
-            frame_id: frame.frame_id,
-            detections: view.unwrap_or_default(),
-        };
-        serde_json::to_writer(&mut *out, &batch)?;
-        out.write_all(b"\n")?;
-    }
     Ok(())
 }
