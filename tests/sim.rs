@@ -295,3 +295,126 @@ fn cli_writes_a_spec_recording_byte_identically() {
     assert!(!no_ids.contains("\"id\":"));
     assert!(no_ids.contains("\"appearance\":"));
 }
+
+#[test]
+fn cli_reads_a_scene_file_and_writes_one_back() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/corridor3.json");
+    let out = dir.path().join("r.jsonl");
+    let dumped = dir.path().join("scene.json");
+    let cli = <crossview::cli::Cli as clap::Parser>::try_parse_from([
+        "crossview",
+        "simulate",
+        "--scene",
+        scene,
+        "--frames",
+        "15",
+        "--density",
+        "0.2",
+        "--clean",
+        "--out",
+        out.to_str().unwrap(),
+        "--write-scene",
+        dumped.to_str().unwrap(),
+    ])
+    .unwrap();
+    match cli.command {
+        crossview::cli::Command::Simulate(a) => crossview::cli::simulate::run(a).unwrap(),
+        #[allow(unreachable_patterns)]
+        _ => unreachable!(),
+    }
+    let rec = crossview::io::recording::read_recording(&out).unwrap();
+    assert_eq!(rec.scene.name, "corridor3");
+    assert_eq!(rec.scene.cameras.len(), 3);
+    assert_eq!(rec.frames.len(), 15);
+    assert!(rec.num_boxes() > 15 * 3 * 5, "{} boxes", rec.num_boxes());
+    // clean detector: score 1 and an id on every box
+    assert!(rec.frames.iter().all(|f| {
+        f.views
+            .iter()
+            .flatten()
+            .flatten()
+            .all(|d| d.score == 1.0 && d.id.is_some())
+    }));
+    let back = crossview::sim::SceneConfig::from_json_file(&dumped).unwrap();
+    assert_eq!(
+        back,
+        crossview::sim::SceneConfig::from_json_file(std::path::Path::new(scene)).unwrap()
+    );
+    // a broken scene file is reported with its name
+    let bad = dir.path().join("bad.json");
+    std::fs::write(
+        &bad,
+        "{\"name\": \"x\", \"area\": [5, 5], \"cameras\": [{\"name\": \"a\"}]}",
+    )
+    .unwrap();
+    let err = crossview::sim::SceneConfig::from_json_file(&bad)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("bad.json"), "{err}");
+}
+
+mod props {
+    use crossview::sim::detector::detect;
+    use crossview::sim::render::{RenderConfig, render_camera};
+    use crossview::sim::{CameraConfig, DetectorNoise, Person};
+    use proptest::prelude::*;
+    use rand::SeedableRng;
+
+    fn camera(z: f64, yaw: f64, pitch: f64, f: f64) -> crossview::sim::Camera {
+        CameraConfig {
+            name: "c".into(),
+            position: [0.0, 0.0, z],
+            yaw_deg: Some(yaw),
+            pitch_deg: Some(pitch),
+            look_at: None,
+            focal_px: f,
+            width: 1280,
+            height: 720,
+            principal: None,
+        }
+        .build("camera")
+        .unwrap()
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+
+        /// Any ground point the camera sees maps back to itself.
+        #[test]
+        fn ground_point_inverts_projection(
+            z in 0.5f64..10.0, yaw in -180.0f64..180.0, pitch in 1.0f64..80.0,
+            f in 200.0f64..3000.0, x in -30.0f64..30.0, y in -30.0f64..30.0,
+        ) {
+            let cam = camera(z, yaw, pitch, f);
+            if let Some(px) = cam.project([x, y, 0.0]) {
+                let g = cam.ground_point(px[0], px[1]).unwrap();
+                prop_assert!((g[0] - x).abs() < 1e-6 * (1.0 + x.abs()) && (g[1] - y).abs() < 1e-6 * (1.0 + y.abs()));
+            }
+        }
+
+        /// Whatever the scene and noise, emitted boxes pass the shared validation and lie in
+        /// the image.
+        #[test]
+        fn emitted_boxes_are_always_valid(
+            z in 0.5f64..10.0, yaw in -180.0f64..180.0, pitch in -10.0f64..80.0,
+            people in proptest::collection::vec((-20.0f64..20.0, -20.0f64..20.0, 1.5f64..1.95), 0..25),
+            jitter in 0.0f64..0.5, fp in 0.0f64..5.0, dup in 0.0f64..1.0, seed in 0u64..1000,
+        ) {
+            let cam = camera(z, yaw, pitch, 900.0);
+            let ps: Vec<Person> = people
+                .iter()
+                .enumerate()
+                .map(|(i, &(x, y, h))| Person::standing(i as u64, [x, y], h, 0.5))
+                .collect();
+            let truth = render_camera(&cam, &ps, &RenderConfig::default());
+            let noise = DetectorNoise { jitter, false_positives: fp, duplicate_rate: dup, ..DetectorNoise::default() };
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+            for b in detect(&truth, 1280, 720, &noise, &mut rng) {
+                let d = crossview::sim::detector::to_detection(&b);
+                prop_assert!(d.validate("d", None).is_ok(), "{:?}", d);
+                prop_assert!(d.bbox[2] <= 1280.0 && d.bbox[3] <= 720.0);
+            }
+        }
+    }
+}

@@ -1,6 +1,7 @@
 //! `crossview simulate`: write a synthetic multi-camera recording (SPEC §7 JSONL).
 use std::path::PathBuf;
 
+use anyhow::Context;
 use clap::Args;
 
 use crate::io::recording::RecordingWriter;
@@ -34,8 +35,11 @@ pub struct SimulateArgs {
     #[arg(long)]
     pub no_ids: bool,
     /// Target number of people (default: about one per 12 m² of the area).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "density")]
     pub people: Option<usize>,
+    /// Target crowd density in people per m² of the area (instead of --people).
+    #[arg(long)]
+    pub density: Option<f64>,
     /// Frames per second.
     #[arg(long, default_value_t = 10.0)]
     pub fps: f64,
@@ -69,6 +73,10 @@ pub struct SimulateArgs {
     /// Per-detection appearance noise.
     #[arg(long, default_value_t = 0.35)]
     pub appearance_noise: f64,
+    /// Also write the scene layout (area and cameras) as a JSON scene file, e.g. to start a
+    /// custom layout from a preset.
+    #[arg(long)]
+    pub write_scene: Option<PathBuf>,
 }
 
 impl SimulateArgs {
@@ -87,6 +95,12 @@ impl SimulateArgs {
         cfg.ids = !self.no_ids;
         if let Some(n) = self.people {
             cfg.people.count = n;
+        }
+        if let Some(d) = self.density {
+            if !d.is_finite() || !(0.0..=4.0).contains(&d) {
+                anyhow::bail!("--density must be within [0, 4] people per m², got {d}");
+            }
+            cfg.people.count = (d * cfg.scene.area[0] * cfg.scene.area[1]).round() as usize;
         }
         if self.clean {
             cfg.detector = DetectorNoise::none();
@@ -113,6 +127,11 @@ impl SimulateArgs {
 /// Runs `crossview simulate`.
 pub fn run(args: SimulateArgs) -> anyhow::Result<()> {
     let cfg = args.config()?;
+    if let Some(path) = &args.write_scene {
+        let text = serde_json::to_string_pretty(&cfg.scene)?;
+        std::fs::write(path, text + "\n")
+            .with_context(|| format!("cannot write scene file {}", path.display()))?;
+    }
     let mut sim = Simulator::new(&cfg)?;
     let start = std::time::Instant::now();
     let mut writer = RecordingWriter::create(&args.out, sim.scene())?;
