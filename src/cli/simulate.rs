@@ -49,7 +49,8 @@ pub struct SimulateArgs {
     /// Increment between frame ids.
     #[arg(long, default_value_t = 1)]
     pub frame_step: u64,
-    /// Perfect detector: ground-truth boxes only (overrides the rate options).
+    /// Annotation-style ground truth: a perfect detector and full (not shrunk) boxes for
+    /// partly occluded people, as WILDTRACK's annotations (overrides the rate options).
     #[arg(long)]
     pub clean: bool,
     /// Box edge jitter as a fraction of the box size.
@@ -104,6 +105,7 @@ impl SimulateArgs {
         }
         if self.clean {
             cfg.detector = DetectorNoise::none();
+            cfg.render.shrink_occluded = false;
         } else {
             let d = &mut cfg.detector;
             d.jitter = self.jitter.unwrap_or(d.jitter);

@@ -74,7 +74,7 @@ const SILHOUETTE_WIDTH: f64 = 0.8;
 /// The unclipped pixel box of a person (the bounding box of their cylinder), or `None` when
 /// any part is behind the camera's near plane.
 pub fn project_person(cam: &Camera, p: &Person) -> Option<[f64; 4]> {
-    let r = p.width / 2.0;
+    let r = p.apparent_width() / 2.0;
     let mut b = [
         f64::INFINITY,
         f64::INFINITY,
