@@ -83,11 +83,10 @@ pub struct SimulateArgs {
 impl SimulateArgs {
     /// The simulator configuration these options describe.
     pub fn config(&self) -> anyhow::Result<SimConfig> {
-        let scene = match &self.scene {
-            Some(path) => SceneConfig::from_json_file(path)?,
-            None => SceneConfig::preset(&self.preset)?,
+        let mut cfg = match &self.scene {
+            Some(path) => SimConfig::new(SceneConfig::from_json_file(path)?),
+            None => SimConfig::preset(&self.preset)?,
         };
-        let mut cfg = SimConfig::new(scene);
         cfg.frames = self.frames;
         cfg.seed = self.seed;
         cfg.fps = self.fps;
