@@ -99,39 +99,53 @@ fn area(b: &[f64; 4]) -> f64 {
     (b[2] - b[0]).max(0.0) * (b[3] - b[1]).max(0.0)
 }
 
-/// The ground-truth boxes of `people` in `cam`, nearest first.
+/// One person's projection in a camera, before occlusion.
+struct InView {
+    person: usize,
+    /// Silhouette (the box narrowed to the body's width), clipped to the image.
+    silhouette: [f64; 4],
+    /// The box clipped to the image.
+    clipped: [f64; 4],
+    depth: f64,
+    /// Enough of the person is inside the image to be boxed.
+    boxable: bool,
+}
+
+/// The ground-truth boxes of `people` in `cam`, nearest first. Everyone in view occludes
+/// those behind them, including people too cut off by the border to be boxed themselves.
 pub fn render_camera(cam: &Camera, people: &[Person], cfg: &RenderConfig) -> Vec<TruthBox> {
     let (w, h) = (cam.spec.width as f64, cam.spec.height as f64);
-    // (person index, clipped box, depth) of everyone in view
-    let mut visible: Vec<(usize, [f64; 4], f64)> = Vec::with_capacity(people.len());
+    let clip = |b: [f64; 4]| [b[0].max(0.0), b[1].max(0.0), b[2].min(w), b[3].min(h)];
+    let mut in_view: Vec<InView> = Vec::with_capacity(people.len());
     for (i, p) in people.iter().enumerate() {
         let Some(full) = project_person(cam, p) else {
             continue;
         };
-        let clipped = [
-            full[0].max(0.0),
-            full[1].max(0.0),
-            full[2].min(w),
-            full[3].min(h),
-        ];
+        let clipped = clip(full);
         if clipped[2] <= clipped[0] || clipped[3] <= clipped[1] {
             continue;
         }
-        if area(&clipped) < cfg.min_inside * area(&full) {
+        let inset = (full[2] - full[0]) * (1.0 - SILHOUETTE_WIDTH) / 2.0;
+        in_view.push(InView {
+            person: i,
+            silhouette: clip([full[0] + inset, full[1], full[2] - inset, full[3]]),
+            clipped,
+            depth: cam.to_camera([p.pos[0], p.pos[1], p.height / 2.0])[2],
+            boxable: area(&clipped) >= cfg.min_inside * area(&full),
+        });
+    }
+    in_view.sort_by(|a, b| a.depth.total_cmp(&b.depth).then(a.person.cmp(&b.person)));
+
+    let mut out = Vec::with_capacity(in_view.len());
+    let mut occluders: Vec<[f64; 4]> = Vec::new();
+    for (k, v) in in_view.iter().enumerate() {
+        if !v.boxable {
             continue;
         }
-        let depth = cam.to_camera([p.pos[0], p.pos[1], p.height / 2.0])[2];
-        visible.push((i, clipped, depth));
-    }
-    visible.sort_by(|a, b| a.2.total_cmp(&b.2).then(a.0.cmp(&b.0)));
-
-    let mut out = Vec::with_capacity(visible.len());
-    let mut occluders: Vec<[f64; 4]> = Vec::new();
-    for (k, &(i, b, depth)) in visible.iter().enumerate() {
+        let b = v.clipped;
         occluders.clear();
-        for &(_, o, _) in &visible[..k] {
-            let inset = (o[2] - o[0]) * (1.0 - SILHOUETTE_WIDTH) / 2.0;
-            let s = [o[0] + inset, o[1], o[2] - inset, o[3]];
+        for o in &in_view[..k] {
+            let s = o.silhouette;
             if s[0] < b[2] && s[2] > b[0] && s[1] < b[3] && s[3] > b[1] {
                 occluders.push(s);
             }
@@ -151,11 +165,11 @@ pub fn render_camera(cam: &Camera, people: &[Person], cfg: &RenderConfig) -> Vec
             continue;
         }
         out.push(TruthBox {
-            person: i,
-            id: people[i].id,
+            person: v.person,
+            id: people[v.person].id,
             bbox,
             occluded,
-            depth,
+            depth: v.depth,
         });
     }
     out
@@ -282,6 +296,24 @@ mod tests {
         let boxes = render_camera(&c, &[half, near], &unshrunk);
         let b = boxes.iter().find(|b| b.id == 2).unwrap();
         assert_eq!(b.bbox, full);
+    }
+
+    #[test]
+    fn people_cut_off_by_the_border_still_occlude() {
+        let c = cam();
+        let cfg = RenderConfig::default();
+        let near = Person::standing(1, [2.0, -2.25], 1.8, 0.5);
+        let far = Person::standing(2, [10.0, -9.45], 1.8, 0.5);
+        // preconditions: near is mostly outside the image (not boxed), far is boxable
+        let nb = project_person(&c, &near).unwrap();
+        assert!(nb[0] < 1920.0 && (1920.0 - nb[0]) / (nb[2] - nb[0]) < cfg.min_inside);
+        let alone = render_camera(&c, std::slice::from_ref(&far), &cfg);
+        assert_eq!(alone.len(), 1);
+        assert_eq!(alone[0].occluded, 0.0);
+        let both = render_camera(&c, &[far, near], &cfg);
+        assert_eq!(both.len(), 1, "{both:?}");
+        assert_eq!(both[0].id, 2);
+        assert!(both[0].occluded > 0.2, "{both:?}");
     }
 
     #[test]
