@@ -3,6 +3,7 @@
 use clap::{Parser, Subcommand};
 
 pub mod import;
+pub mod model;
 pub mod simulate;
 
 /// Self-supervised multi-view person association: train, evaluate, serve.
@@ -51,6 +52,8 @@ pub enum Command {
     Import(import::ImportArgs),
     /// Keep the train, val or test part of a recording (chronological split, SPEC §6).
     Split(import::SplitArgs),
+    /// Model file tools: create a random encoder, inspect a file.
+    Model(model::ModelArgs),
     /// Generate a synthetic multi-camera recording (SPEC §7) with ground-truth ids.
     Simulate(simulate::SimulateArgs),
 }
@@ -62,6 +65,7 @@ pub fn run() -> anyhow::Result<()> {
     match cli.command {
         Command::Import(args) => import::run(args),
         Command::Split(args) => import::run_split(args),
+        Command::Model(args) => model::run(args),
         Command::Simulate(args) => simulate::run(args),
     }
 }
