@@ -34,7 +34,8 @@ pub struct SimulateArgs {
     /// Leave out the ground-truth ids.
     #[arg(long)]
     pub no_ids: bool,
-    /// Target number of people (default: about one per 12 m² of the area).
+    /// Target number of people (default: 30 for wildtrack, otherwise about one per 12 m² of
+    /// the area).
     #[arg(long, conflicts_with = "density")]
     pub people: Option<usize>,
     /// Target crowd density in people per m² of the area (instead of --people).
