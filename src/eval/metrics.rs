@@ -43,11 +43,18 @@ impl PairRecord {
         if self.scores.len() != n * m {
             return Err(Error::invalid(
                 field("scores"),
-                format!("expected {n}×{m} = {} values, got {}", n * m, self.scores.len()),
+                format!(
+                    "expected {n}×{m} = {} values, got {}",
+                    n * m,
+                    self.scores.len()
+                ),
             ));
         }
         if let Some(k) = self.scores.iter().position(|v| !v.is_finite()) {
-            return Err(Error::invalid(field(&format!("scores[{k}]")), "must be finite"));
+            return Err(Error::invalid(
+                field(&format!("scores[{k}]")),
+                "must be finite",
+            ));
         }
         let mut used_a = vec![false; n];
         let mut used_b = vec![false; m];
@@ -163,7 +170,11 @@ fn pair_counts(r: &PairRecord) -> PairCounts {
 }
 
 fn ratio(num: usize, den: usize) -> f64 {
-    if den == 0 { 0.0 } else { num as f64 / den as f64 }
+    if den == 0 {
+        0.0
+    } else {
+        num as f64 / den as f64
+    }
 }
 
 /// Average precision exactly as scikit-learn's `average_precision_score`: with the scores
@@ -396,11 +407,32 @@ mod tests {
 
     #[test]
     fn validation_rejects_inconsistent_records() {
-        assert!(rec(vec![1], vec![2], vec![0.5], vec![(0, 0, 0.5)]).validate().is_ok());
-        assert!(rec(vec![1], vec![2], vec![0.5, 0.1], vec![]).validate().is_err());
-        assert!(rec(vec![1], vec![2], vec![f32::NAN], vec![]).validate().is_err());
-        assert!(rec(vec![1], vec![2], vec![0.5], vec![(1, 0, 0.5)]).validate().is_err());
-        let dup = rec(vec![1, 2], vec![2], vec![0.5, 0.5], vec![(0, 0, 0.5), (1, 0, 0.5)]);
+        assert!(
+            rec(vec![1], vec![2], vec![0.5], vec![(0, 0, 0.5)])
+                .validate()
+                .is_ok()
+        );
+        assert!(
+            rec(vec![1], vec![2], vec![0.5, 0.1], vec![])
+                .validate()
+                .is_err()
+        );
+        assert!(
+            rec(vec![1], vec![2], vec![f32::NAN], vec![])
+                .validate()
+                .is_err()
+        );
+        assert!(
+            rec(vec![1], vec![2], vec![0.5], vec![(1, 0, 0.5)])
+                .validate()
+                .is_err()
+        );
+        let dup = rec(
+            vec![1, 2],
+            vec![2],
+            vec![0.5, 0.5],
+            vec![(0, 0, 0.5), (1, 0, 0.5)],
+        );
         assert!(dup.validate().is_err());
     }
 
