@@ -5,7 +5,9 @@ use std::hint::black_box;
 use criterion::{BatchSize, Criterion, criterion_group, criterion_main};
 use crossview::core::association::{AssociationConfig, Mode, ViewPair, associate_frame};
 use crossview::core::identity::build_identities;
-use crossview::core::matching::{match_views_with_norms, row_sq_norms};
+use crossview::core::matching::{
+    euclidean_distances_with_norms, hungarian, match_views_with_norms, row_sq_norms,
+};
 use crossview::core::{Detection, Frame};
 use ndarray::Array2;
 use rand::{Rng, SeedableRng};
@@ -74,6 +76,33 @@ fn bench(c: &mut Criterion) {
     let mut g = c.benchmark_group("wildtrack_frame_7x35x768");
     g.bench_function("pairwise_21_matchings", |b| {
         b.iter(|| black_box(pairwise(black_box(&embs), &cfg)))
+    });
+    let views: Vec<&Array2<f32>> = embs.iter().flatten().collect();
+    let norms: Vec<_> = views.iter().map(|e| row_sq_norms(e.view())).collect();
+    g.bench_function("distances_21_only", |b| {
+        b.iter(|| {
+            for a in 0..CAMERAS {
+                for c in a + 1..CAMERAS {
+                    black_box(euclidean_distances_with_norms(
+                        views[a].view(),
+                        views[c].view(),
+                        norms[a].view(),
+                        norms[c].view(),
+                    ));
+                }
+            }
+        })
+    });
+    let costs: Vec<Array2<f32>> = pairs
+        .iter()
+        .map(|p| p.matching.scores.mapv(|v| 1.0 - v))
+        .collect();
+    g.bench_function("hungarian_21_only", |b| {
+        b.iter(|| {
+            for c in &costs {
+                black_box(hungarian(c.view()));
+            }
+        })
     });
     g.bench_function("identities", |b| {
         b.iter(|| black_box(build_identities(&sizes, black_box(&pairs), cfg.threshold)))
