@@ -64,10 +64,12 @@ pub fn format_table(rows: &[TableRow]) -> String {
 /// One setting in the JSON report.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ReportRun {
-    /// `pairwise` or `global`.
+    /// `pairwise`, `global`, or `from-dump` (setting unknown).
     pub mode: String,
-    pub threshold: f32,
-    pub alpha: f32,
+    /// Confidence threshold (absent when recomputed from a dump).
+    pub threshold: Option<f32>,
+    /// Appearance weight (absent when recomputed from a dump).
+    pub alpha: Option<f32>,
     /// SPEC §5 metrics as fractions in [0, 1], plus counts.
     pub metrics: Metrics,
 }
@@ -95,8 +97,8 @@ impl EvalReport {
                 .iter()
                 .map(|r| ReportRun {
                     mode: r.mode.to_string(),
-                    threshold: r.threshold,
-                    alpha: r.alpha,
+                    threshold: Some(r.threshold),
+                    alpha: Some(r.alpha),
                     metrics: r.metrics,
                 })
                 .collect(),
