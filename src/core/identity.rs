@@ -86,6 +86,10 @@ struct Agglomeration {
     words: usize,
     /// Clusters still alive, ascending.
     alive: Vec<usize>,
+    /// Candidate partners of each live cluster, ascending: clusters with at least one member
+    /// pair scoring `S >= threshold` (an average can reach the threshold only then), so
+    /// searches touch a handful of clusters instead of all of them.
+    adj: Vec<Vec<usize>>,
     members: Vec<Vec<usize>>,
     top: Vec<Top2>,
     threshold: f32,
@@ -120,10 +124,8 @@ impl Agglomeration {
             second_known: true,
             ..Top2::default()
         };
-        for &s in &self.alive {
-            if s != r
-                && let Some(l) = self.linkage(r, s)
-            {
+        for &s in &self.adj[r] {
+            if let Some(l) = self.linkage(r, s) {
                 t.offer((l, s));
             }
         }
@@ -150,13 +152,31 @@ impl Agglomeration {
             self.alive.remove(pos);
         }
         self.top[s] = Top2::default();
-        self.rescan(r);
-        let gone = |c: Cand| matches!(c, Some((_, p)) if p == r || p == s);
-        for idx in 0..self.alive.len() {
-            let k = self.alive[idx];
+        // Candidate lists: `s` becomes `r` everywhere; `r` gets the union.
+        let adj_s = std::mem::take(&mut self.adj[s]);
+        for &k in &adj_s {
             if k == r {
                 continue;
             }
+            let a = &mut self.adj[k];
+            if let Ok(pos) = a.binary_search(&s) {
+                a.remove(pos);
+            }
+            if let Err(pos) = a.binary_search(&r) {
+                a.insert(pos, r);
+            }
+        }
+        let mut adj_r = std::mem::take(&mut self.adj[r]);
+        adj_r.extend(adj_s);
+        adj_r.sort_unstable();
+        adj_r.dedup();
+        adj_r.retain(|&k| k != r && k != s);
+        self.adj[r] = adj_r;
+        self.rescan(r);
+        let gone = |c: Cand| matches!(c, Some((_, p)) if p == r || p == s);
+        // Only neighbours of `r` or `s` can have had them as candidates.
+        for idx in 0..self.adj[r].len() {
+            let k = self.adj[r][idx];
             let new = self.linkage(k, r).map(|l| (l, r));
             let mut t = self.top[k];
             if gone(t.best) {
@@ -229,6 +249,7 @@ pub fn build_identities(view_sizes: &[usize], pairs: &[ViewPair], threshold: f32
     let mut count = vec![0u32; n * n];
     // Highest S of each box to any box of another camera (for singleton confidence).
     let mut max_s = vec![f32::NEG_INFINITY; n];
+    let mut adj: Vec<Vec<usize>> = vec![Vec::new(); n];
     for p in pairs {
         let (ca, cb) = (p.cam_a, p.cam_b);
         let s = &p.matching.scores;
@@ -251,7 +272,15 @@ pub fn build_identities(view_sizes: &[usize], pairs: &[ViewPair], threshold: f32
             count[j * n + i] += 1;
             max_s[i] = max_s[i].max(v);
             max_s[j] = max_s[j].max(v);
+            if v >= threshold {
+                adj[i].push(j);
+                adj[j].push(i);
+            }
         }
+    }
+    for a in &mut adj {
+        a.sort_unstable();
+        a.dedup();
     }
     let mut ag = Agglomeration {
         n,
@@ -260,6 +289,7 @@ pub fn build_identities(view_sizes: &[usize], pairs: &[ViewPair], threshold: f32
         cams,
         words,
         alive: (0..n).collect(),
+        adj,
         members: (0..n).map(|i| vec![i]).collect(),
         top: vec![Top2::default(); n],
         threshold,
