@@ -6,7 +6,8 @@ use criterion::{BatchSize, Criterion, criterion_group, criterion_main};
 use crossview::core::association::{AssociationConfig, Mode, ViewPair, associate_frame};
 use crossview::core::identity::build_identities;
 use crossview::core::matching::{
-    euclidean_distances_with_norms, hungarian, match_views_with_norms, row_sq_norms,
+    all_pairs_distances, euclidean_distances_with_norms, hungarian, match_from_distances,
+    row_sq_norms,
 };
 use crossview::core::{Detection, Frame};
 use ndarray::Array2;
@@ -43,25 +44,19 @@ fn frame_embeddings() -> (Frame, Vec<Option<Array2<f32>>>) {
     (frame, embs)
 }
 
+/// The production path of `associate_frame`'s pairwise step: block distances, then
+/// normalisation + Hungarian + threshold per pair.
 fn pairwise(embs: &[Option<Array2<f32>>], cfg: &AssociationConfig) -> Vec<ViewPair> {
-    let views: Vec<&Array2<f32>> = embs.iter().flatten().collect();
-    let norms: Vec<_> = views.iter().map(|e| row_sq_norms(e.view())).collect();
+    let views: Vec<_> = embs.iter().flatten().map(|e| e.view()).collect();
+    let mut dists = all_pairs_distances(&views).into_iter();
     let mut pairs = Vec::with_capacity(21);
     for a in 0..views.len() {
         for b in a + 1..views.len() {
-            let matching = match_views_with_norms(
-                views[a].view(),
-                views[b].view(),
-                norms[a].view(),
-                norms[b].view(),
-                None,
-                cfg.alpha,
-                cfg.threshold,
-            );
+            let dg = dists.next().unwrap();
             pairs.push(ViewPair {
                 cam_a: a,
                 cam_b: b,
-                matching,
+                matching: match_from_distances(dg, None, cfg.alpha, cfg.threshold),
             });
         }
     }
@@ -93,21 +88,9 @@ fn bench(c: &mut Criterion) {
             }
         })
     });
-    // Alternative layout: one contiguous [245, 768] matrix, one GEMM per camera against all
-    // later cameras (6 products instead of 21).
-    let all = ndarray::concatenate(
-        ndarray::Axis(0),
-        &views.iter().map(|v| v.view()).collect::<Vec<_>>(),
-    )
-    .unwrap();
-    g.bench_function("distances_6_block_gemms", |b| {
-        b.iter(|| {
-            for a in 0..CAMERAS - 1 {
-                let x = all.slice(ndarray::s![a * BOXES..(a + 1) * BOXES, ..]);
-                let y = all.slice(ndarray::s![(a + 1) * BOXES.., ..]);
-                black_box(x.dot(&y.t()));
-            }
-        })
+    let view_list: Vec<_> = views.iter().map(|v| v.view()).collect();
+    g.bench_function("distances_all_pairs_blocks", |b| {
+        b.iter(|| black_box(all_pairs_distances(black_box(&view_list))))
     });
     let costs: Vec<Array2<f32>> = pairs
         .iter()
