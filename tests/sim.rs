@@ -1,11 +1,11 @@
 //! Simulator integration tests: determinism, complete frames, the CLI output format and the
 //! calibrated sanity check (ground truth and geometry agree).
+use crossview::core::matching::hungarian;
 use crossview::core::{Batch, Detection};
 use crossview::sim::{
     AppearanceConfig, BODY_RADIUS_M, DetectorNoise, SimConfig, Simulator, ground_distances,
     simulate,
 };
-use ndarray::Array2;
 
 fn small(preset: &str, frames: u64, seed: u64) -> SimConfig {
     let mut cfg = SimConfig::preset(preset).unwrap();
@@ -120,29 +120,6 @@ fn invalid_configs_are_rejected_with_the_field_named() {
     assert!(SimConfig::preset("mall").is_err());
 }
 
-/// Minimum-cost assignment (rows and columns in any proportion), via pathfinding.
-fn assign(cost: &Array2<f32>) -> Vec<(usize, usize)> {
-    let (n, m) = cost.dim();
-    if n == 0 || m == 0 {
-        return vec![];
-    }
-    let transpose = n > m;
-    let (r, c) = if transpose { (m, n) } else { (n, m) };
-    let w = pathfinding::matrix::Matrix::from_fn(r, c, |(i, j)| {
-        let v = if transpose {
-            cost[[j, i]]
-        } else {
-            cost[[i, j]]
-        };
-        -((v as f64 * 1000.0).round() as i64)
-    });
-    let (_, cols) = pathfinding::kuhn_munkres::kuhn_munkres(&w);
-    cols.into_iter()
-        .enumerate()
-        .map(|(i, j)| if transpose { (j, i) } else { (i, j) })
-        .collect()
-}
-
 /// SPEC §5-style pairwise accuracy of ground-plane matching with a distance gate (metres).
 fn calibrated_accuracy(cfg: &SimConfig, gate: f32) -> (f64, usize) {
     let sim = Simulator::new(cfg).unwrap();
@@ -172,7 +149,7 @@ fn calibrated_accuracy(cfg: &SimConfig, gate: f32) -> (f64, usize) {
                 }
                 let d = ground_distances(&cams[i], a, &cams[j], b, BODY_RADIUS_M);
                 // gate before assigning, so far-apart leftovers cannot trade partners
-                let kept: Vec<(usize, usize)> = assign(&d.mapv(|v| v.min(gate)))
+                let kept: Vec<(usize, usize)> = hungarian(d.mapv(|v| v.min(gate)).view())
                     .into_iter()
                     .filter(|&(x, y)| d[[x, y]] < gate)
                     .collect();
