@@ -1,5 +1,4 @@
-//! `crossview serve`: flags (with `CROSSVIEW_*` environment fallbacks) → [`ServeConfig`], logs,
-//! then [`crossview::serve::run`] until Ctrl-C / SIGTERM.
+//! `crossview serve`: flags (with `CROSSVIEW_*` environment fallbacks) → [`ServeConfig`], then [`crossview::serve::run`] until Ctrl-C / SIGTERM.
 use std::path::PathBuf;
 use std::time::Duration;
 
@@ -68,9 +67,6 @@ pub struct ServeArgs {
     /// How long shutdown waits for open connections after flushing.
     #[arg(long, env = "CROSSVIEW_SHUTDOWN_GRACE", default_value = "10s", value_parser = parse_duration)]
     pub shutdown_grace: Duration,
-    /// Log as JSON lines (level filter from RUST_LOG, default info).
-    #[arg(long, env = "CROSSVIEW_LOG_JSON")]
-    pub log_json: bool,
 }
 
 /// Parses `250ms`, `2s`, `1.5s` or a bare number of milliseconds.
@@ -138,20 +134,9 @@ impl ServeArgs {
     }
 }
 
-fn init_logs(json: bool) {
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-    let builder = tracing_subscriber::fmt().with_env_filter(filter);
-    let _ = if json {
-        builder.json().try_init()
-    } else {
-        builder.try_init()
-    };
-}
-
-/// Runs the server until Ctrl-C or SIGTERM, then shuts down gracefully.
+/// Runs the server until Ctrl-C or SIGTERM, then shuts down gracefully. Logs go through the
+/// global `--log-format text|json` subscriber.
 pub fn run(args: ServeArgs) -> anyhow::Result<()> {
-    init_logs(args.log_json);
     let config = args.to_config()?;
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
