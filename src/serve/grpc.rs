@@ -139,7 +139,9 @@ fn scene_to_pb(s: api::SceneDescription) -> pb::Scene {
 /// Pushes one protobuf batch and turns the outcome into its acknowledgement.
 fn push_one(svc: &Service, b: pb::Batch) -> pb::BatchAck {
     let (scene, camera, frame_id) = (b.scene.clone(), b.camera.clone(), b.frame_id);
-    let outcome = batch_from_pb(b).and_then(|(scene, batch)| svc.push(&scene, batch));
+    let outcome = batch_from_pb(b)
+        .inspect_err(|e| svc.metrics().error(e.kind()))
+        .and_then(|(scene, batch)| svc.push(&scene, batch));
     let (code, message, kind) = match outcome {
         Ok(_) => (0, String::new(), String::new()),
         Err(e) => {
@@ -179,7 +181,8 @@ impl pb::association_server::Association for GrpcService {
         &self,
         request: Request<pb::AssociateRequest>,
     ) -> Result<Response<pb::FrameResult>, Status> {
-        let (scene, req) = associate_from_pb(request.into_inner())?;
+        let (scene, req) = associate_from_pb(request.into_inner())
+            .inspect_err(|e| self.svc.metrics().error(e.kind()))?;
         let r = self.svc.associate(&scene, req).await?;
         Ok(Response::new(result_to_pb(&r)))
     }

@@ -54,6 +54,11 @@ impl IntoResponse for Error {
     }
 }
 
+/// Marks a response whose error was produced outside [`Service`] (so not yet counted);
+/// the request-accounting middleware counts it.
+#[derive(Debug, Clone, Copy)]
+pub struct UncountedError(pub &'static str);
+
 /// A JSON body whose decoding errors are [`Error::InvalidArgument`] (422, naming `body`), while
 /// the body-size limit still answers 413.
 pub struct JsonBody<T>(pub T);
@@ -65,9 +70,13 @@ impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for JsonBody<T> {
         let bytes = Bytes::from_request(req, state)
             .await
             .map_err(IntoResponse::into_response)?;
-        serde_json::from_slice(&bytes)
-            .map(JsonBody)
-            .map_err(|e| Error::invalid("body", e.to_string()).into_response())
+        serde_json::from_slice(&bytes).map(JsonBody).map_err(|e| {
+            let e = Error::invalid("body", e.to_string());
+            let kind = e.kind();
+            let mut resp = e.into_response();
+            resp.extensions_mut().insert(UncountedError(kind));
+            resp
+        })
     }
 }
 

@@ -322,6 +322,9 @@ async fn track_requests(State(m): State<metrics::Metrics>, req: Request, next: N
     } else {
         resp.status().as_u16().to_string()
     };
+    if let Some(http::UncountedError(kind)) = resp.extensions().get() {
+        m.error(kind);
+    }
     let transport = if grpc { "grpc" } else { "http" };
     m.request(transport, &method, &status, t.elapsed());
     resp

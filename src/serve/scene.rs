@@ -21,6 +21,10 @@ use crate::core::{Detection, Frame, SceneSpec};
 use crate::model::Encoder;
 use crate::{Error, Result};
 
+/// Largest accepted magnitude of a box coordinate (pixels) or appearance value: far beyond any
+/// real image, small enough that squared distances stay finite in `f32`.
+pub const MAX_MAGNITUDE: f32 = 1e6;
+
 /// Static facts about a scene (from its model file).
 #[derive(Debug, Clone, PartialEq)]
 pub struct SceneInfo {
@@ -187,6 +191,23 @@ impl Scene {
                 with_app += 1;
             }
             d.validate(&f, expected)?;
+            if d.bbox.iter().any(|v| v.abs() > MAX_MAGNITUDE) {
+                return Err(Error::invalid(
+                    format!("{f}.bbox"),
+                    format!(
+                        "coordinates must be at most {MAX_MAGNITUDE} pixels, got {:?}",
+                        d.bbox
+                    ),
+                ));
+            }
+            if let Some(app) = &d.appearance
+                && let Some(k) = app.iter().position(|v| v.abs() > MAX_MAGNITUDE)
+            {
+                return Err(Error::invalid(
+                    format!("{f}.appearance[{k}]"),
+                    format!("magnitude must be at most {MAX_MAGNITUDE}"),
+                ));
+            }
         }
         if with_app != 0 && with_app != detections.len() {
             return Err(Error::invalid(
