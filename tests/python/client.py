@@ -63,19 +63,22 @@ def batches():
         for c in range(3):
             yield pb.Batch(scene="lab", camera=f"c{c}", frame_id=f,
                            detections=[det(10.0 + 40 * i + c) for i in range(2)])
-    yield pb.Batch(scene="lab", camera="c0", frame_id=2, detections=[])
+            if (f, c) == (0, 0):
+                # The same camera and frame again: rejected as a duplicate, stream stays open.
+                yield pb.Batch(scene="lab", camera="c0", frame_id=0, detections=[])
 
 
 acks = list(stub.Push(batches(), timeout=60))
 ok = sum(1 for a in acks if a.code == 0)
-dup = grpc.StatusCode.ALREADY_EXISTS if acks[-1].code == grpc.StatusCode.ALREADY_EXISTS.value[0] else acks[-1].code
+codes = {c.value[0]: c.name for c in grpc.StatusCode}
+rejected = [codes.get(a.code, str(a.code)) for a in acks if a.code != 0]
 
 frames = [results.get(timeout=60) for _ in range(3)]
 t.join(30)
 print(json.dumps({
     "scenes": scenes,
     "acks_ok": ok,
-    "duplicate_code": dup.name if hasattr(dup, "name") else str(dup),
+    "duplicate_code": rejected[0] if len(rejected) == 1 else rejected,
     "frames": [r.frame_id for r in frames],
     "complete": [r.complete for r in frames],
     "identities": sum(len(r.identities) for r in frames),
