@@ -93,6 +93,5 @@ async fn late_and_duplicate_batches_are_rejected_and_counted() {
     );
     assert_eq!(metric(&m, "crossview_errors_total{kind=\"late\"}"), 3.0);
     assert_eq!(metric(&m, "crossview_batches_total{scene=\"lab\"}"), 4.0);
-    drop(send);
     server.shutdown().await.unwrap();
 }

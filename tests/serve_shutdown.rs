@@ -33,7 +33,7 @@ async fn shutdown_flushes_pending_frames_with_none_lost() {
     let mut pushed: BTreeMap<u64, Vec<usize>> = BTreeMap::new();
     for f in 0..12u64 {
         let cams: Vec<usize> = (0..3)
-            .filter(|c| (f + *c as u64) % 4 != 0 || f % 5 == 0)
+            .filter(|c| !(f + *c as u64).is_multiple_of(4) || f.is_multiple_of(5))
             .collect();
         pushed.insert(f, cams);
     }

@@ -144,10 +144,7 @@ impl Synchronizer {
                 out.push(self.pop_first(EmitReason::Timeout));
             }
         }
-        loop {
-            let Some((_, head)) = self.pending.first_key_value() else {
-                break;
-            };
+        while let Some((_, head)) = self.pending.first_key_value() {
             let reason = if head.reported == self.num_cameras {
                 EmitReason::Complete
             } else if self.pending.len() > self.max_pending {
