@@ -266,3 +266,37 @@ async fn bearer_token_is_required_except_for_health_and_metrics() {
     );
     server.shutdown().await.unwrap();
 }
+
+/// With no room in the inference queue, work is shed: RESOURCE_EXHAUSTED over gRPC, 429 over
+/// HTTP, and nothing is accepted.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn full_queue_sheds_load() {
+    let server = start(|c| c.limits.queue_capacity = 0).await;
+    let mut client = server.grpc().await;
+    let ack = push_one(&mut client, batch(0, 1, 1)).await;
+    assert_eq!(ack.code, Code::ResourceExhausted as i32, "{ack:?}");
+    let e = client
+        .associate(pb::AssociateRequest {
+            scene: "lab".into(),
+            frame_id: 1,
+            views: vec![],
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::ResourceExhausted);
+    let r = reqwest::Client::new()
+        .post(server.url("/v1/scenes/lab/batches"))
+        .json(&batch_json(0, 1, 1))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 429);
+    let m = server.metrics().await;
+    assert_eq!(metric(&m, "crossview_batches_total{scene=\"lab\"}"), 0.0);
+    assert_eq!(
+        metric(&m, "crossview_errors_total{kind=\"resource_exhausted\"}"),
+        3.0,
+        "{m}"
+    );
+    server.shutdown().await.unwrap();
+}

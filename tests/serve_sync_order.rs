@@ -85,3 +85,48 @@ async fn shuffled_pushes_from_three_connections_come_out_in_order() {
     assert_eq!(metric(&m, "crossview_pending_frames{scene=\"lab\"}"), 0.0);
     server.shutdown().await.unwrap();
 }
+
+/// The one-client-has-all-cameras case: a single bidirectional `Stream` call sends every
+/// camera's batches and receives the acknowledgements and the scene's results, in order.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_client_with_all_cameras_over_the_bidirectional_stream() {
+    use crossview::serve::pb::stream_response::Event;
+    let server = start(|c| c.sync_timeout = Duration::from_secs(120)).await;
+    let mut client = server.grpc().await;
+    // Interleaved frames and cameras, as a client with several detectors would send them.
+    let order = [
+        (2, 0),
+        (1, 2),
+        (1, 0),
+        (2, 1),
+        (3, 2),
+        (1, 1),
+        (2, 2),
+        (3, 0),
+        (3, 1),
+    ];
+    let batches: Vec<_> = order.iter().map(|&(f, cam)| batch(cam, f, 2)).collect();
+    let mut out = client
+        .stream(futures::stream::iter(batches))
+        .await
+        .unwrap()
+        .into_inner();
+    let (mut acks, mut frames) = (0, Vec::new());
+    while frames.len() < 3 {
+        let msg = guard("stream", out.next()).await.unwrap().unwrap();
+        match msg.event.unwrap() {
+            Event::Ack(a) => {
+                assert_eq!(a.code, 0, "{a:?}");
+                acks += 1;
+            }
+            Event::Result(r) => {
+                assert!(r.complete);
+                check_identities(&r, &[2, 2, 2]);
+                frames.push(r.frame_id);
+            }
+        }
+    }
+    assert_eq!(frames, vec![1, 2, 3]);
+    assert!(acks >= 8, "the last ack may follow the last result");
+    server.shutdown().await.unwrap();
+}

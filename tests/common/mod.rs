@@ -86,6 +86,7 @@ pub async fn start(configure: impl FnOnce(&mut ServeConfig)) -> TestServer {
         ..ServeConfig::default()
     };
     configure(&mut config);
+    let server_uses_tls = config.tls.is_some();
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
         .await
         .expect("bind");
@@ -100,6 +101,10 @@ pub async fn start(configure: impl FnOnce(&mut ServeConfig)) -> TestServer {
         stop: Some(tx),
         task: Some(task),
     };
+    if server_uses_tls {
+        // Connections wait in the listener's backlog until the server accepts them.
+        return server;
+    }
     let http = reqwest::Client::new();
     guard("server readiness", async {
         loop {
