@@ -3,6 +3,7 @@
 use clap::{Parser, Subcommand};
 
 pub mod import;
+pub mod model;
 pub mod serve;
 
 /// Self-supervised multi-view person association: train, evaluate, serve.
@@ -53,6 +54,8 @@ pub enum Command {
     Import(import::ImportArgs),
     /// Keep the train, val or test part of a recording (chronological split, SPEC §6).
     Split(import::SplitArgs),
+    /// Model file tools: create a random encoder, inspect a file.
+    Model(model::ModelArgs),
 }
 
 /// Entry point used by `main`.
@@ -63,5 +66,6 @@ pub fn run() -> anyhow::Result<()> {
         Command::Serve(args) => serve::run(args),
         Command::Import(args) => import::run(args),
         Command::Split(args) => import::run_split(args),
+        Command::Model(args) => model::run(args),
     }
 }

@@ -4,7 +4,7 @@ use super::config::{Limits, ModelSpec};
 use super::engine::EngineConfig;
 use super::scene::SceneInfo;
 use crate::core::SceneSpec;
-use crate::model::{Encoder, ModelMetadata};
+use crate::model::{Encoder, ModelMetadata, OnnxEncoder};
 use crate::{Error, Result};
 
 /// The scene description a model's metadata defines, checked against `limits`.
@@ -32,11 +32,10 @@ pub fn scene_info(name: &str, meta: &ModelMetadata, limits: &Limits) -> Result<S
     })
 }
 
-/// Loads one model file (blocking) into its scene description and encoder.
+/// Loads one model file (blocking: creates its ONNX Runtime session) into its scene
+/// description and encoder.
 pub fn load_model(spec: &ModelSpec, limits: &Limits) -> Result<(SceneInfo, Box<dyn Encoder>)> {
-    let _ = limits;
-    Err(Error::model(
-        spec.path.display().to_string(),
-        "ONNX runtime encoder not available yet",
-    ))
+    let encoder = OnnxEncoder::load(&spec.path)?;
+    let info = scene_info(&spec.name, encoder.metadata(), limits)?;
+    Ok((info, Box::new(encoder)))
 }
