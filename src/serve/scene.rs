@@ -269,7 +269,8 @@ impl Scene {
         let cam = self.info.spec.camera_index(camera)?;
         self.validate("detections", &detections)?;
         let mut intake = lock(&self.intake);
-        // A batch may release every pending frame plus its own.
+        // Shed before accepting anything. One batch can release several frames at once, so the
+        // queue may overshoot the capacity by at most `max_pending_frames`: still bounded.
         self.admit(1)?;
         let emitted = match intake.sync.push(cam, frame_id, detections, Instant::now()) {
             Ok(e) => e,
