@@ -69,13 +69,15 @@ pub struct ServeArgs {
     pub shutdown_grace: Duration,
 }
 
-/// Parses `250ms`, `2s`, `1.5s` or a bare number of milliseconds.
+/// Parses `250ms`, `2s`, `1.5s`, `10m` or a bare number of milliseconds.
 pub fn parse_duration(s: &str) -> Result<Duration, String> {
     let s = s.trim();
     let (num, scale) = if let Some(v) = s.strip_suffix("ms") {
         (v, 1e-3)
     } else if let Some(v) = s.strip_suffix('s') {
         (v, 1.0)
+    } else if let Some(v) = s.strip_suffix('m') {
+        (v, 60.0)
     } else {
         (s, 1e-3)
     };
@@ -160,6 +162,7 @@ mod tests {
         assert_eq!(parse_duration("200ms"), Ok(Duration::from_millis(200)));
         assert_eq!(parse_duration("1.5s"), Ok(Duration::from_millis(1500)));
         assert_eq!(parse_duration("50"), Ok(Duration::from_millis(50)));
+        assert_eq!(parse_duration("2m"), Ok(Duration::from_secs(120)));
         assert!(parse_duration("-1s").is_err());
         assert!(parse_duration("soon").is_err());
     }
