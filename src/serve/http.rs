@@ -122,13 +122,75 @@ async fn associate(
     Ok(Json(svc.associate(&scene, req).await?).into_response())
 }
 
+/// True when the body is JSON Lines (a SPEC §7 recording or several batch lines).
+fn is_json_lines(headers: &http::HeaderMap) -> bool {
+    headers
+        .get(http::header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| {
+            v.starts_with("application/x-ndjson") || v.starts_with("application/jsonl")
+        })
+}
+
 async fn push_batch(
     State(svc): State<Arc<Service>>,
     Path(scene): Path<String>,
-    JsonBody(batch): JsonBody<Batch>,
+    headers: http::HeaderMap,
+    body: Bytes,
 ) -> Result<Response, Error> {
+    if is_json_lines(&headers) {
+        return push_lines(&svc, &scene, &body);
+    }
+    let batch: Batch = serde_json::from_slice(&body).map_err(|e| {
+        svc.metrics().error("invalid_argument");
+        Error::invalid("body", e.to_string())
+    })?;
     let ack = svc.push(&scene, batch)?;
     Ok((StatusCode::ACCEPTED, Json(ack)).into_response())
+}
+
+/// JSON Lines body: every batch line is pushed in order (a recording's scene header line is
+/// skipped); the answer lists each line's outcome, so one bad line rejects only itself.
+fn push_lines(svc: &Service, scene: &str, body: &[u8]) -> Result<Response, Error> {
+    svc.scene(scene)?;
+    let (mut accepted, mut rejected, mut results) = (0usize, 0usize, Vec::new());
+    for (i, line) in body.split(|&b| b == b'\n').enumerate() {
+        if line.iter().all(u8::is_ascii_whitespace) {
+            continue;
+        }
+        let outcome = serde_json::from_slice::<serde_json::Value>(line)
+            .map_err(|e| Error::invalid("body", e.to_string()))
+            .and_then(|v| {
+                if v.get("scene").is_some() && v.get("camera").is_none() {
+                    return Ok(None);
+                }
+                let batch: Batch =
+                    serde_json::from_value(v).map_err(|e| Error::invalid("body", e.to_string()))?;
+                svc.push(scene, batch).map(Some)
+            });
+        let line_no = i + 1;
+        match outcome {
+            Ok(None) => {}
+            Ok(Some(ack)) => {
+                accepted += 1;
+                results.push(serde_json::json!({ "line": line_no, "accepted": true, "camera": ack.camera, "frame_id": ack.frame_id }));
+            }
+            Err(e) => {
+                if matches!(e, Error::InvalidArgument { ref field, .. } if field == "body") {
+                    svc.metrics().error(e.kind());
+                }
+                rejected += 1;
+                results.push(serde_json::json!({
+                    "line": line_no, "accepted": false,
+                    "error": { "kind": e.kind(), "message": e.to_string() },
+                }));
+            }
+        }
+    }
+    Ok(
+        Json(serde_json::json!({ "accepted": accepted, "rejected": rejected, "results": results }))
+            .into_response(),
+    )
 }
 
 async fn events(
