@@ -1,6 +1,8 @@
-//! Association of one synchronized frame: every box of the frame embedded in one encoder call,
-//! then the method's matching and identities (`crate::core::association`).
+//! Association of one synchronized frame: every box of the frame embedded in one encoder call
+//! ([`embed_frame`]), then the method's pairwise matching and global identities
+//! ([`associate_frame`]).
 use crate::Result;
+use crate::core::association::{AssociationConfig, Mode, associate_frame, embed_frame};
 use crate::core::identity::Identity;
 use crate::core::{Frame, SceneSpec};
 use crate::model::Encoder;
@@ -22,17 +24,11 @@ pub fn associate(
     frame: &Frame,
     config: EngineConfig,
 ) -> Result<Vec<Identity>> {
-    let _ = (encoder, scene, config);
-    // Placeholder until core::association lands: every box is its own identity.
-    let mut out = Vec::new();
-    for (c, view) in frame.views.iter().enumerate() {
-        for (i, _) in view.iter().flatten().enumerate() {
-            out.push(Identity {
-                id: out.len(),
-                confidence: 1.0,
-                members: vec![(c, i)],
-            });
-        }
-    }
-    Ok(out)
+    let embeddings = embed_frame(encoder, scene, frame)?;
+    let cfg = AssociationConfig {
+        threshold: config.threshold,
+        alpha: config.alpha,
+        mode: Mode::Pairwise,
+    };
+    Ok(associate_frame(frame, embeddings, &cfg).identities)
 }
