@@ -5,6 +5,7 @@ use clap::{Parser, Subcommand};
 pub mod eval;
 pub mod import;
 pub mod model;
+pub mod serve;
 pub mod simulate;
 
 /// Self-supervised multi-view person association: train, evaluate, serve.
@@ -49,6 +50,8 @@ fn init_logging(format: LogFormat) {
 /// Subcommands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    /// Serve association over gRPC and HTTP JSON (streaming, cross-camera synchronization).
+    Serve(serve::ServeArgs),
     /// Convert a dataset (WILDTRACK ground truth or detections) into a recording.
     Import(import::ImportArgs),
     /// Keep the train, val or test part of a recording (chronological split, SPEC §6).
@@ -68,6 +71,7 @@ pub fn run() -> anyhow::Result<()> {
     let cli = Cli::parse();
     init_logging(cli.log_format);
     match cli.command {
+        Command::Serve(args) => serve::run(args),
         Command::Import(args) => import::run(args),
         Command::Split(args) => import::run_split(args),
         Command::Model(args) => model::run(args),
