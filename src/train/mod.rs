@@ -7,10 +7,12 @@
 //! - [`adam`]: the optimiser, with checkpointable state.
 
 pub mod adam;
+pub mod checkpoint;
 pub mod data;
 pub mod losses;
 pub mod model;
 pub mod sampler;
+pub mod trainer;
 
 pub use data::TrainingSet;
 pub use model::TrainModel;
