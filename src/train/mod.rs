@@ -8,11 +8,14 @@
 
 pub mod adam;
 pub mod checkpoint;
+pub mod curve;
 pub mod data;
 pub mod losses;
+pub mod metrics_bridge;
 pub mod model;
 pub mod sampler;
 pub mod trainer;
+pub mod validate;
 
 pub use data::TrainingSet;
 pub use model::TrainModel;
