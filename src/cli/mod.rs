@@ -3,6 +3,8 @@
 use clap::{Parser, Subcommand};
 
 pub mod import;
+pub mod model;
+pub mod train;
 
 /// Self-supervised multi-view person association: train, evaluate, serve.
 #[derive(Debug, Parser)]
@@ -50,6 +52,10 @@ pub enum Command {
     Import(import::ImportArgs),
     /// Keep the train, val or test part of a recording (chronological split, SPEC §6).
     Split(import::SplitArgs),
+    /// Model file tools: create a random encoder, inspect a file.
+    Model(model::ModelArgs),
+    /// Train an encoder self-supervised on a recording and export it as ONNX.
+    Train(train::TrainArgs),
 }
 
 /// Entry point used by `main`.
@@ -59,5 +65,7 @@ pub fn run() -> anyhow::Result<()> {
     match cli.command {
         Command::Import(args) => import::run(args),
         Command::Split(args) => import::run_split(args),
+        Command::Model(args) => model::run(args),
+        Command::Train(args) => train::run(args),
     }
 }
