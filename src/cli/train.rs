@@ -81,6 +81,10 @@ pub struct TrainArgs {
     /// Compute threads (default: all cores).
     #[arg(long, env = "CROSSVIEW_THREADS")]
     pub threads: Option<usize>,
+    /// Stop training after this many seconds (exploration; drops the learning rate at
+    /// `--lr-drop-at` of the budget; not reproducible).
+    #[arg(long)]
+    pub max_train_seconds: Option<f64>,
     /// Name of the training data stored in the model (default: the file name).
     #[arg(long)]
     pub data_name: Option<String>,
@@ -116,6 +120,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         alpha: args.alpha,
         seed: args.seed,
         val_every: args.val_every,
+        max_train_seconds: args.max_train_seconds,
     };
     let mut validator = match &args.val {
         Some(p) => {
@@ -163,6 +168,9 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         &outcome.history,
         &format!("crossview train on {data_name} (width {})", cfg.width),
     )?;
+    let history = args.out.with_extension("history.json");
+    std::fs::write(&history, serde_json::to_vec_pretty(&outcome.history)?)
+        .with_context(|| format!("writing {}", history.display()))?;
     match outcome.best {
         Some(s) => println!(
             "wrote {} (epoch {}, {} steps, {:.0}s training): val ACC {:.2} IPAA-100 {:.2} P {:.2} R {:.2} threshold {:.1}; curve {}",

@@ -319,3 +319,137 @@ pub fn step_loss<R: Rng>(
     };
     Ok(Some((total, stats)))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::Device;
+    use ndarray::array;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+
+    fn close(a: f32, b: f32) -> bool {
+        (a - b).abs() < 1e-5
+    }
+
+    #[test]
+    fn pseudo_box_is_midpoint_of_bottom_centres_with_mean_size() {
+        // u: bottom-centre (1, 4), 2 x 4; v: bottom-centre (5, 4), 2 x 2.
+        let p = pseudo_box([0.0, 0.0, 2.0, 4.0], [4.0, 2.0, 6.0, 4.0]);
+        assert_eq!(p, [2.0, 1.0, 4.0, 4.0]);
+        // The pseudo-person of a box with itself is the box.
+        let b = [0.1, 0.2, 0.3, 0.7];
+        let q = pseudo_box(b, b);
+        assert!(q.iter().zip(b).all(|(x, y)| close(*x, y)));
+        // Symmetric in its arguments.
+        assert_eq!(
+            pseudo_box([0.0, 0.0, 2.0, 4.0], [4.0, 2.0, 6.0, 4.0]),
+            pseudo_box([4.0, 2.0, 6.0, 4.0], [0.0, 0.0, 2.0, 4.0])
+        );
+    }
+
+    #[test]
+    fn edges_are_unique_unordered_and_sampled_without_replacement() {
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        assert_eq!(
+            edge_indices(3, 0, &mut rng),
+            vec![(0, 1), (0, 2), (1, 2)]
+        );
+        assert!(edge_indices(1, 0, &mut rng).is_empty());
+        assert!(edge_indices(0, 5, &mut rng).is_empty());
+        let e = edge_indices(10, 7, &mut rng);
+        assert_eq!(e.len(), 7);
+        let mut d = e.clone();
+        d.dedup();
+        assert_eq!(d.len(), 7);
+        assert!(e.iter().all(|&(s, t)| s < t && t < 10));
+        assert_eq!(edge_indices(4, 100, &mut rng).len(), 6);
+    }
+
+    #[test]
+    fn edge_boxes_follow_the_matched_pairs() {
+        let a = [[0.0, 0.0, 2.0, 4.0], [4.0, 2.0, 6.0, 4.0], [9.0, 9.0, 10.0, 10.0]];
+        let b = [[100.0, 0.0, 102.0, 4.0], [50.0, 50.0, 51.0, 51.0], [104.0, 2.0, 106.0, 4.0]];
+        // a0 <-> b0, a1 <-> b2; a2 unmatched.
+        let pairs = [(0, 0), (1, 2)];
+        let e = edge_boxes(&a, &b, &pairs, &[(0, 1)]);
+        assert_eq!(e, vec![([2.0, 1.0, 4.0, 4.0], [102.0, 1.0, 104.0, 4.0])]);
+    }
+
+    #[test]
+    fn hungarian_gather_pairs_boxes_by_nearest_embedding_globally() {
+        // Greedy would pair a0-b0 (distance 0.1) and leave a1-b1 (distance 5); the optimal
+        // assignment is a0-b1, a1-b0 (1 + 1).
+        let ea = array![[0.0f32, 0.0], [2.0, 0.0]];
+        let eb = array![[0.1f32, 0.0], [-1.0, 0.0]];
+        let img = Image {
+            boxes: vec![[0.0; 4]; 2],
+            appearance: None,
+        };
+        let p = match_images(ea.view(), eb.view(), &img, &img, 0.1);
+        assert_eq!(p, vec![(0, 1), (1, 0)]);
+        // Rectangular: min(n, m) pairs.
+        let eb3 = array![[5.0f32, 5.0], [0.0, 0.1], [2.0, 0.1]];
+        let img3 = Image {
+            boxes: vec![[0.0; 4]; 3],
+            appearance: None,
+        };
+        assert_eq!(
+            match_images(ea.view(), eb3.view(), &img, &img3, 0.1),
+            vec![(0, 1), (1, 2)]
+        );
+    }
+
+    #[test]
+    fn hinge_uses_mean_raw_distances_of_the_gathered_pairs() {
+        let dev = Device::Cpu;
+        // rows: 0 anchor (0,0); 1 anchor (0,1); 2 pos (3,4); 3 pos (0,1); 4 neg (0,0); 5 neg (0,2)
+        let emb = Tensor::from_slice(
+            &[0.0f32, 0.0, 0.0, 1.0, 3.0, 4.0, 0.0, 1.0, 0.0, 0.0, 0.0, 2.0],
+            (6, 2),
+            &dev,
+        )
+        .unwrap();
+        let mut h = HingeSet::new(2);
+        // triplet 0: pos pairs (0,2)=5, (1,3)=0 -> mean 2.5; neg (0,4)=0, (1,5)=1 -> 0.5
+        h.add(0, &[(0, 2), (1, 3)], &[(0, 4), (1, 5)]);
+        // triplet 1 has no negative side: ignored.
+        h.add(1, &[(0, 3)], &[]);
+        let l = h.loss(&emb, 2).unwrap().to_scalar::<f32>().unwrap();
+        // relu(2.5 - 0.5 + 1) / 2 = 1.5
+        assert!(close(l, 1.5), "{l}");
+        // A triplet well separated contributes 0.
+        let mut h2 = HingeSet::new(1);
+        h2.add(0, &[(1, 3)], &[(0, 2)]); // 0 - 5 + 1 < 0
+        assert!(close(h2.loss(&emb, 1).unwrap().to_scalar::<f32>().unwrap(), 0.0));
+        assert!(close(HingeSet::new(3).loss(&emb, 3).unwrap().to_scalar::<f32>().unwrap(), 0.0));
+    }
+
+    #[test]
+    fn hinge_gradient_pulls_positives_together() {
+        let dev = Device::Cpu;
+        let v = candle_core::Var::from_slice(&[0.0f32, 0.0, 3.0, 4.0, 1.0, 0.0], (3, 2), &dev)
+            .unwrap();
+        let mut h = HingeSet::new(1);
+        h.add(0, &[(0, 1)], &[(0, 2)]);
+        let l = h.loss(v.as_tensor(), 1).unwrap();
+        assert!(close(l.to_scalar::<f32>().unwrap(), 5.0)); // 5 - 1 + 1
+        let g = l.backward().unwrap();
+        let g = g.get(v.as_tensor()).unwrap().to_vec2::<f32>().unwrap();
+        // d/d row1 of ||r1 - r0|| = (r1 - r0)/5 = (0.6, 0.8)
+        assert!(close(g[1][0], 0.6) && close(g[1][1], 0.8), "{g:?}");
+        // d/d row2 of -||r2 - r0|| = -(1, 0)
+        assert!(close(g[2][0], -1.0) && close(g[2][1], 0.0), "{g:?}");
+    }
+
+    #[test]
+    fn reprojection_is_weighted_l1_summed_over_coordinates() {
+        let dev = Device::Cpu;
+        let pred = Tensor::from_slice(&[0.0f32, 0.0, 1.0, 1.0, 0.5, 0.5, 0.5, 0.5], (2, 4), &dev)
+            .unwrap();
+        let target = [[0.1, 0.0, 1.0, 0.8], [0.0, 0.0, 0.0, 0.0]];
+        // |.|: 0.1 + 0 + 0 + 0.2 = 0.3 (weight 0.5); 2.0 (weight 0.25)
+        let l = reprojection_loss(&pred, &target, &[0.5, 0.25]).unwrap();
+        assert!(close(l.to_scalar::<f32>().unwrap(), 0.15 + 0.5));
+    }
+}

@@ -45,6 +45,11 @@ pub struct TrainConfig {
     pub seed: u64,
     /// Validate every this many epochs (0 = only at the end); needs a validator.
     pub val_every: usize,
+    /// Optional wall-clock budget for training in seconds: training stops after the first
+    /// epoch that exceeds it, and the learning-rate drop happens at `lr_drop_at` of the
+    /// budget instead of the epochs. For exploration: such runs are not reproducible.
+    #[serde(default)]
+    pub max_train_seconds: Option<f64>,
 }
 
 impl Default for TrainConfig {
@@ -62,6 +67,7 @@ impl Default for TrainConfig {
             alpha: 0.1,
             seed: 0,
             val_every: 0,
+            max_train_seconds: None,
         }
     }
 }
@@ -245,7 +251,12 @@ pub fn train(
     };
     while st.epoch < cfg.epochs {
         let epoch = st.epoch + 1;
-        st.adam.lr = if st.epoch >= drop_epoch { cfg.lr * 0.1 } else { cfg.lr };
+        let dropped = match cfg.max_train_seconds {
+            Some(budget) => st.train_seconds >= budget * cfg.lr_drop_at,
+            None => st.epoch >= drop_epoch,
+        };
+        st.adam.lr = if dropped { cfg.lr * 0.1 } else { cfg.lr };
+        let out_of_time = |secs: f64| cfg.max_train_seconds.is_some_and(|b| secs >= b);
         let started = Instant::now();
         let mut rng = ChaCha8Rng::seed_from_u64(mix(cfg.seed, epoch as u64));
         let order = sampler.epoch_order(&mut rng);
@@ -285,7 +296,8 @@ pub fn train(
             "epoch {epoch} loss {:.3} (syn {:.3} pro {:.3} edge {:.3})",
             rec.total, rec.syn, rec.pro, rec.edge
         ));
-        let due = epoch == cfg.epochs || (cfg.val_every > 0 && epoch % cfg.val_every == 0);
+        let last = epoch == cfg.epochs || out_of_time(st.train_seconds);
+        let due = last || (cfg.val_every > 0 && epoch % cfg.val_every == 0);
         if let (true, Some(v)) = (due, validator.as_deref_mut()) {
             let scores = v.validate(&st.model)?;
             bar.println(format!(
@@ -302,13 +314,17 @@ pub fn train(
                 st.best = Some((st.model.to_weights()?, scores, epoch));
             }
         }
-        tracing::debug!(epoch, loss = rec.total, "epoch done");
+        tracing::info!(epoch, loss = rec.total, syn = rec.syn, pro = rec.pro, edge = rec.edge,
+            steps = n, train_seconds = st.train_seconds, "epoch done");
         st.history.push(rec);
         st.epoch = epoch;
         if let Some(dir) = &ckpt.dir
-            && (epoch == cfg.epochs || (ckpt.every > 0 && epoch % ckpt.every == 0))
+            && (last || (ckpt.every > 0 && epoch % ckpt.every == 0))
         {
             checkpoint::save(dir, cfg, &st)?;
+        }
+        if last {
+            break;
         }
     }
     bar.finish_and_clear();
