@@ -136,8 +136,13 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         }
         None => None,
     };
-    tracing::info!(frames = set.num_frames(), cameras = set.num_cameras(),
-        boxes = set.num_boxes(), ?cfg, "training");
+    tracing::info!(
+        frames = set.num_frames(),
+        cameras = set.num_cameras(),
+        boxes = set.num_boxes(),
+        ?cfg,
+        "training"
+    );
     let ckpt = CheckpointOptions {
         dir: args.checkpoint_dir.clone(),
         every: args.checkpoint_every,
@@ -156,7 +161,14 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_default()
     });
-    let meta = metadata(&rec.scene.cameras, &args, &cfg, &outcome, &data_name, &rec.scene.name);
+    let meta = metadata(
+        &rec.scene.cameras,
+        &args,
+        &cfg,
+        &outcome,
+        &data_name,
+        &rec.scene.name,
+    );
     write_onnx(&args.out, &outcome.weights, &meta)
         .with_context(|| format!("writing {}", args.out.display()))?;
     let curve = args

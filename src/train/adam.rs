@@ -1,7 +1,7 @@
 //! Adam (Kingma & Ba) over candle variables, with its moment state exposed so that
 //! checkpoints can save and restore it exactly.
-use candle_core::{Tensor, Var};
 use candle_core::backprop::GradStore;
+use candle_core::{Tensor, Var};
 
 use crate::Result;
 use crate::train::model::ce;
@@ -57,13 +57,17 @@ impl Adam {
             let Some(g) = grads.get(var.as_tensor()) else {
                 continue;
             };
+            // Gradients carry the graph that produced them: detach so the moments do not
+            // keep every past step's graph alive.
+            let g = g.detach();
+            let g = &g;
             let run = || -> candle_core::Result<(Tensor, Tensor)> {
                 let m = ((&self.m[i] * self.beta1)? + (g * (1.0 - self.beta1))?)?;
                 let v = ((&self.v[i] * self.beta2)? + (g.sqr()? * (1.0 - self.beta2))?)?;
                 let denom = ((&v / bc2)?.sqrt()? + self.eps)?;
                 let update = ((&m / &denom)? * step_size)?;
-                var.set(&(var.as_tensor() - update)?)?;
-                Ok((m, v))
+                var.set(&(var.as_tensor().detach() - update)?)?;
+                Ok((m.detach(), v.detach()))
             };
             let (m, v) = run().map_err(ce)?;
             self.m[i] = m;

@@ -28,14 +28,36 @@ pub fn render_svg(history: &[EpochRecord], title: &str) -> String {
     );
     let epochs: Vec<f64> = history.iter().map(|r| r.epoch as f64).collect();
     let losses: [(&str, &str, Vec<f64>); 4] = [
-        ("total", "#000000", history.iter().map(|r| r.total as f64).collect()),
-        ("sync", "#1f77b4", history.iter().map(|r| r.syn as f64).collect()),
-        ("re-projection", "#2ca02c", history.iter().map(|r| r.pro as f64).collect()),
-        ("edge", "#d62728", history.iter().map(|r| r.edge as f64).collect()),
+        (
+            "total",
+            "#000000",
+            history.iter().map(|r| r.total as f64).collect(),
+        ),
+        (
+            "sync",
+            "#1f77b4",
+            history.iter().map(|r| r.syn as f64).collect(),
+        ),
+        (
+            "re-projection",
+            "#2ca02c",
+            history.iter().map(|r| r.pro as f64).collect(),
+        ),
+        (
+            "edge",
+            "#d62728",
+            history.iter().map(|r| r.edge as f64).collect(),
+        ),
     ];
     let series: Vec<(&str, &str, Vec<(f64, f64)>)> = losses
         .iter()
-        .map(|(n, c, v)| (*n, *c, epochs.iter().copied().zip(v.iter().copied()).collect()))
+        .map(|(n, c, v)| {
+            (
+                *n,
+                *c,
+                epochs.iter().copied().zip(v.iter().copied()).collect(),
+            )
+        })
         .collect();
     panel(&mut s, 0.0, "training loss", &series, None);
     let val: Vec<&EpochRecord> = history.iter().filter(|r| r.val.is_some()).collect();
@@ -168,7 +190,9 @@ fn fmt(v: f64) -> String {
 }
 
 fn escape(t: &str) -> String {
-    t.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;")
+    t.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
 }
 
 #[cfg(test)]

@@ -238,7 +238,10 @@ pub fn step_loss<R: Rng>(
     let mut offsets = Vec::with_capacity(t); // (anchor, positive, negative) start rows
     for tr in &kept {
         let mut o = [0usize; 3];
-        for (k, r) in [tr.anchor, tr.positive, tr.negative].into_iter().enumerate() {
+        for (k, r) in [tr.anchor, tr.positive, tr.negative]
+            .into_iter()
+            .enumerate()
+        {
             o[k] = boxes.len();
             let b = &img(r).boxes;
             let w = if k < 2 { 1.0 / b.len() as f32 } else { 0.0 };
@@ -268,13 +271,7 @@ pub fn step_loss<R: Rng>(
         let mut sides: Vec<Vec<(u32, u32)>> = Vec::with_capacity(2);
         let mut edge_sides: Vec<Vec<(u32, u32)>> = Vec::with_capacity(2);
         for (other, start, r) in [(ip, o[1], tr.positive), (ineg, o[2], tr.negative)] {
-            let pairs = match_images(
-                va,
-                view(start, other.boxes.len()),
-                ia,
-                other,
-                opts.alpha,
-            );
+            let pairs = match_images(va, view(start, other.boxes.len()), ia, other, opts.alpha);
             sides.push(
                 pairs
                     .iter()
@@ -306,9 +303,7 @@ pub fn step_loss<R: Rng>(
         let e = model.forward(&edge_boxes_all, &edge_cams)?.embedding;
         edge.loss(&e, t)?
     };
-    let total = (&l_syn + &l_pro)
-        .and_then(|x| x + &l_edge)
-        .map_err(ce)?;
+    let total = (&l_syn + &l_pro).and_then(|x| x + &l_edge).map_err(ce)?;
     let scalar = |x: &Tensor| x.to_scalar::<f32>().map_err(ce);
     let stats = StepStats {
         total: scalar(&total)?,
@@ -351,10 +346,7 @@ mod tests {
     #[test]
     fn edges_are_unique_unordered_and_sampled_without_replacement() {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
-        assert_eq!(
-            edge_indices(3, 0, &mut rng),
-            vec![(0, 1), (0, 2), (1, 2)]
-        );
+        assert_eq!(edge_indices(3, 0, &mut rng), vec![(0, 1), (0, 2), (1, 2)]);
         assert!(edge_indices(1, 0, &mut rng).is_empty());
         assert!(edge_indices(0, 5, &mut rng).is_empty());
         let e = edge_indices(10, 7, &mut rng);
@@ -368,8 +360,16 @@ mod tests {
 
     #[test]
     fn edge_boxes_follow_the_matched_pairs() {
-        let a = [[0.0, 0.0, 2.0, 4.0], [4.0, 2.0, 6.0, 4.0], [9.0, 9.0, 10.0, 10.0]];
-        let b = [[100.0, 0.0, 102.0, 4.0], [50.0, 50.0, 51.0, 51.0], [104.0, 2.0, 106.0, 4.0]];
+        let a = [
+            [0.0, 0.0, 2.0, 4.0],
+            [4.0, 2.0, 6.0, 4.0],
+            [9.0, 9.0, 10.0, 10.0],
+        ];
+        let b = [
+            [100.0, 0.0, 102.0, 4.0],
+            [50.0, 50.0, 51.0, 51.0],
+            [104.0, 2.0, 106.0, 4.0],
+        ];
         // a0 <-> b0, a1 <-> b2; a2 unmatched.
         let pairs = [(0, 0), (1, 2)];
         let e = edge_boxes(&a, &b, &pairs, &[(0, 1)]);
@@ -405,7 +405,9 @@ mod tests {
         let dev = Device::Cpu;
         // rows: 0 anchor (0,0); 1 anchor (0,1); 2 pos (3,4); 3 pos (0,1); 4 neg (0,0); 5 neg (0,2)
         let emb = Tensor::from_slice(
-            &[0.0f32, 0.0, 0.0, 1.0, 3.0, 4.0, 0.0, 1.0, 0.0, 0.0, 0.0, 2.0],
+            &[
+                0.0f32, 0.0, 0.0, 1.0, 3.0, 4.0, 0.0, 1.0, 0.0, 0.0, 0.0, 2.0,
+            ],
             (6, 2),
             &dev,
         )
@@ -421,15 +423,25 @@ mod tests {
         // A triplet well separated contributes 0.
         let mut h2 = HingeSet::new(1);
         h2.add(0, &[(1, 3)], &[(0, 2)]); // 0 - 5 + 1 < 0
-        assert!(close(h2.loss(&emb, 1).unwrap().to_scalar::<f32>().unwrap(), 0.0));
-        assert!(close(HingeSet::new(3).loss(&emb, 3).unwrap().to_scalar::<f32>().unwrap(), 0.0));
+        assert!(close(
+            h2.loss(&emb, 1).unwrap().to_scalar::<f32>().unwrap(),
+            0.0
+        ));
+        assert!(close(
+            HingeSet::new(3)
+                .loss(&emb, 3)
+                .unwrap()
+                .to_scalar::<f32>()
+                .unwrap(),
+            0.0
+        ));
     }
 
     #[test]
     fn hinge_gradient_pulls_positives_together() {
         let dev = Device::Cpu;
-        let v = candle_core::Var::from_slice(&[0.0f32, 0.0, 3.0, 4.0, 1.0, 0.0], (3, 2), &dev)
-            .unwrap();
+        let v =
+            candle_core::Var::from_slice(&[0.0f32, 0.0, 3.0, 4.0, 1.0, 0.0], (3, 2), &dev).unwrap();
         let mut h = HingeSet::new(1);
         h.add(0, &[(0, 1)], &[(0, 2)]);
         let l = h.loss(v.as_tensor(), 1).unwrap();
@@ -445,8 +457,8 @@ mod tests {
     #[test]
     fn reprojection_is_weighted_l1_summed_over_coordinates() {
         let dev = Device::Cpu;
-        let pred = Tensor::from_slice(&[0.0f32, 0.0, 1.0, 1.0, 0.5, 0.5, 0.5, 0.5], (2, 4), &dev)
-            .unwrap();
+        let pred =
+            Tensor::from_slice(&[0.0f32, 0.0, 1.0, 1.0, 0.5, 0.5, 0.5, 0.5], (2, 4), &dev).unwrap();
         let target = [[0.1, 0.0, 1.0, 0.8], [0.0, 0.0, 0.0, 0.0]];
         // |.|: 0.1 + 0 + 0 + 0.2 = 0.3 (weight 0.5); 2.0 (weight 0.25)
         let l = reprojection_loss(&pred, &target, &[0.5, 0.25]).unwrap();

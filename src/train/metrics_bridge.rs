@@ -3,11 +3,11 @@
 //! matching code; to be replaced by a call into `crate::eval`.
 use ndarray::Array2;
 
+use crate::Result;
 use crate::core::matching::match_views;
 use crate::io::Recording;
 use crate::model::Encoder;
 use crate::train::trainer::ValScores;
-use crate::Result;
 
 /// Scores `encoder` on `rec` at each threshold.
 pub fn scores(
@@ -33,9 +33,14 @@ pub fn scores(
         for v in &f.views {
             match v {
                 Some(d) if !d.is_empty() => {
-                    let e = emb.slice(ndarray::s![start..start + d.len(), ..]).to_owned();
+                    let e = emb
+                        .slice(ndarray::s![start..start + d.len(), ..])
+                        .to_owned();
                     start += d.len();
-                    row.push(Some((e, d.iter().map(|x| x.id.unwrap_or(u64::MAX)).collect())));
+                    row.push(Some((
+                        e,
+                        d.iter().map(|x| x.id.unwrap_or(u64::MAX)).collect(),
+                    )));
                 }
                 _ => row.push(None),
             }
@@ -67,8 +72,12 @@ pub fn scores(
                             c += 1;
                         }
                     }
-                    let tn = (0..ia.len()).filter(|&a| !ma[a] && !sb.contains(&ia[a])).count()
-                        + (0..ib.len()).filter(|&b| !mb[b] && !sa.contains(&ib[b])).count();
+                    let tn = (0..ia.len())
+                        .filter(|&a| !ma[a] && !sb.contains(&ia[a]))
+                        .count()
+                        + (0..ib.len())
+                            .filter(|&b| !mb[b] && !sa.contains(&ib[b]))
+                            .count();
                     correct += c;
                     kept += m.matches.len();
                     inter += n_inter;

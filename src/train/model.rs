@@ -33,13 +33,15 @@ impl TrainLinear {
         let w: Vec<f32> = (0..in_dim * out_dim)
             .map(|_| rng.random_range(-bound..bound))
             .collect();
-        let b: Vec<f32> = (0..out_dim).map(|_| rng.random_range(-bound..bound)).collect();
+        let b: Vec<f32> = (0..out_dim)
+            .map(|_| rng.random_range(-bound..bound))
+            .collect();
         Self::from_parts(&w, &b, in_dim, out_dim, dev)
     }
 
     fn from_parts(w_t: &[f32], b: &[f32], i: usize, o: usize, dev: &Device) -> Result<Self> {
-        let weight_t = Var::from_tensor(&Tensor::from_slice(w_t, (i, o), dev).map_err(ce)?)
-            .map_err(ce)?;
+        let weight_t =
+            Var::from_tensor(&Tensor::from_slice(w_t, (i, o), dev).map_err(ce)?).map_err(ce)?;
         let bias = Var::from_tensor(&Tensor::from_slice(b, o, dev).map_err(ce)?).map_err(ce)?;
         Ok(TrainLinear { weight_t, bias })
     }
@@ -120,10 +122,12 @@ impl TrainModel {
             .map(|_| normal.sample(&mut rng))
             .collect();
         let table: Vec<f32> = (0..num_cameras * config.camera_dim)
-            .map(|_| loop {
-                let v = normal.sample(&mut rng);
-                if (-2.0..=2.0).contains(&v) {
-                    break v;
+            .map(|_| {
+                loop {
+                    let v = normal.sample(&mut rng);
+                    if (-2.0..=2.0).contains(&v) {
+                        break v;
+                    }
                 }
             })
             .collect();
@@ -211,7 +215,10 @@ impl TrainModel {
 
     /// Every trainable variable with a stable name (checkpoints, optimiser state).
     pub fn named_vars(&self) -> Vec<(String, Var)> {
-        let mut v = vec![("camera_embedding".to_string(), self.camera_embedding.clone())];
+        let mut v = vec![(
+            "camera_embedding".to_string(),
+            self.camera_embedding.clone(),
+        )];
         if let Some(p) = &self.input_proj {
             v.push(("input_proj.weight_t".into(), p.weight_t.clone()));
             v.push(("input_proj.bias".into(), p.bias.clone()));
@@ -284,7 +291,10 @@ impl TrainModel {
             return Ok(ndarray::Array2::zeros((0, g)));
         }
         let e = self.forward(boxes, cams)?.embedding;
-        let v = e.flatten_all().and_then(|t| t.to_vec1::<f32>()).map_err(ce)?;
+        let v = e
+            .flatten_all()
+            .and_then(|t| t.to_vec1::<f32>())
+            .map_err(ce)?;
         ndarray::Array2::from_shape_vec((boxes.len(), g), v)
             .map_err(|e| Error::Training(format!("embedding shape: {e}")))
     }

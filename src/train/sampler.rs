@@ -155,7 +155,10 @@ mod tests {
             seen[(q + MAX_OFFSET as i64) as usize] = true;
         }
         for d in MIN_OFFSET..=MAX_OFFSET {
-            assert!(seen[MAX_OFFSET + d] && seen[MAX_OFFSET - d], "offset ±{d} never drawn");
+            assert!(
+                seen[MAX_OFFSET + d] && seen[MAX_OFFSET - d],
+                "offset ±{d} never drawn"
+            );
         }
     }
 

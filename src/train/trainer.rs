@@ -91,7 +91,10 @@ impl TrainConfig {
             ));
         }
         if !(self.lr.is_finite() && self.lr > 0.0) {
-            return Err(Error::invalid("train.lr", format!("must be > 0, got {}", self.lr)));
+            return Err(Error::invalid(
+                "train.lr",
+                format!("must be > 0, got {}", self.lr),
+            ));
         }
         if !(0.0..=1.0).contains(&self.lr_drop_at) {
             return Err(Error::invalid("train.lr_drop_at", "must be within [0, 1]"));
@@ -307,15 +310,33 @@ pub fn train(
                 scores.threshold,
                 st.train_seconds
             ));
-            tracing::info!(epoch, acc = scores.acc, ipaa100 = scores.ipaa100,
-                threshold = scores.threshold, train_seconds = st.train_seconds, "validation");
+            tracing::info!(
+                epoch,
+                acc = scores.acc,
+                ipaa100 = scores.ipaa100,
+                threshold = scores.threshold,
+                train_seconds = st.train_seconds,
+                "validation"
+            );
             rec.val = Some(scores);
-            if st.best.as_ref().is_none_or(|(_, b, _)| scores.better_than(b)) {
+            if st
+                .best
+                .as_ref()
+                .is_none_or(|(_, b, _)| scores.better_than(b))
+            {
                 st.best = Some((st.model.to_weights()?, scores, epoch));
             }
         }
-        tracing::info!(epoch, loss = rec.total, syn = rec.syn, pro = rec.pro, edge = rec.edge,
-            steps = n, train_seconds = st.train_seconds, "epoch done");
+        tracing::info!(
+            epoch,
+            loss = rec.total,
+            syn = rec.syn,
+            pro = rec.pro,
+            edge = rec.edge,
+            steps = n,
+            train_seconds = st.train_seconds,
+            "epoch done"
+        );
         st.history.push(rec);
         st.epoch = epoch;
         if let Some(dir) = &ckpt.dir
@@ -351,4 +372,3 @@ fn mix(seed: u64, epoch: u64) -> u64 {
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
     z ^ (z >> 31)
 }
-

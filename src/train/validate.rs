@@ -41,7 +41,10 @@ impl Encoder for CandleEncoder<'_> {
                 if (0..n).contains(&c) {
                     Ok(c as u32)
                 } else {
-                    Err(Error::invalid("camera", format!("index {c} outside 0..{n}")))
+                    Err(Error::invalid(
+                        "camera",
+                        format!("index {c} outside 0..{n}"),
+                    ))
                 }
             })
             .collect::<Result<Vec<u32>>>()?;
