@@ -1,12 +1,11 @@
 //! `crossview model`: create a random encoder file for a scene (`init`) and inspect a model
 //! file (`info`).
-use std::io::BufRead;
 use std::path::PathBuf;
 
-use anyhow::Context;
 use clap::{Args, Subcommand};
 
 use crate::core::SceneSpec;
+use crate::io::recording::RecordingReader;
 use crate::model::metadata::KEY_SCENE;
 use crate::model::onnx::DimensionValue;
 use crate::model::{
@@ -76,20 +75,9 @@ pub fn run(args: ModelArgs) -> anyhow::Result<()> {
     }
 }
 
-/// Reads only the header line (`{"scene": {...}}`) of a SPEC §7 recording.
+/// Reads and validates only the header line (`{"scene": {...}}`) of a SPEC §7 recording.
 fn read_scene_header(path: &PathBuf) -> anyhow::Result<SceneSpec> {
-    #[derive(serde::Deserialize)]
-    struct Header {
-        scene: SceneSpec,
-    }
-    let file = std::fs::File::open(path).with_context(|| format!("{}", path.display()))?;
-    let mut line = String::new();
-    std::io::BufReader::new(file)
-        .read_line(&mut line)
-        .with_context(|| format!("{}", path.display()))?;
-    let header: Header = serde_json::from_str(line.trim())
-        .with_context(|| format!("{}:1: expected a {{\"scene\": ...}} header", path.display()))?;
-    Ok(header.scene)
+    Ok(RecordingReader::open(path)?.scene().clone())
 }
 
 fn init(a: InitArgs) -> anyhow::Result<()> {

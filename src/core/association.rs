@@ -1,9 +1,11 @@
 //! Whole-frame association: embed every box of a frame in one encoder call, match every pair of
 //! reported views, and build global identities.
-use ndarray::{Array1, Array2, s};
+use ndarray::{Array2, ArrayView2, s};
 
 use crate::core::identity::{Identity, build_identities, pairs_from_identities};
-use crate::core::matching::{PairMatching, match_views_with_norms, row_sq_norms};
+use crate::core::matching::{
+    PairMatching, all_pairs_distances, euclidean_distances, match_from_distances,
+};
 use crate::core::{Frame, SceneSpec};
 use crate::model::Encoder;
 use crate::{Error, Result};
@@ -195,14 +197,6 @@ pub fn associate_frame(
             _ => 0,
         })
         .collect();
-    let norms: Vec<Option<Array1<f32>>> = (0..nv)
-        .map(|c| {
-            embeddings[c]
-                .as_ref()
-                .filter(|_| sizes[c] > 0)
-                .map(|e| row_sq_norms(e.view()))
-        })
-        .collect();
     let apps: Vec<Option<Array2<f32>>> = (0..nv)
         .map(|c| {
             if sizes[c] > 0 {
@@ -212,34 +206,24 @@ pub fn associate_frame(
             }
         })
         .collect();
-    let mut pairs = Vec::with_capacity(nv * nv.saturating_sub(1) / 2);
-    for a in 0..nv {
-        if sizes[a] == 0 {
-            continue;
-        }
-        for b in a + 1..nv {
-            if sizes[b] == 0 {
-                continue;
-            }
-            let (Some(ea), Some(eb)) = (&embeddings[a], &embeddings[b]) else {
-                continue;
-            };
-            let (Some(na), Some(nb)) = (&norms[a], &norms[b]) else {
-                continue;
-            };
-            let app = match (&apps[a], &apps[b]) {
-                (Some(x), Some(y)) if x.ncols() == y.ncols() => Some((x.view(), y.view())),
+    // Views with boxes, in camera order, and all their pairwise geometric distances.
+    let cams: Vec<usize> = (0..nv).filter(|&c| sizes[c] > 0).collect();
+    let views: Vec<ArrayView2<f32>> = cams
+        .iter()
+        .filter_map(|&c| embeddings[c].as_ref().map(|e| e.view()))
+        .collect();
+    let mut dists = all_pairs_distances(&views).into_iter();
+    let mut pairs = Vec::with_capacity(dists.len());
+    for (x, &a) in cams.iter().enumerate() {
+        for &b in &cams[x + 1..] {
+            let Some(dg) = dists.next() else { break };
+            let da = match (&apps[a], &apps[b]) {
+                (Some(p), Some(q)) if p.ncols() == q.ncols() => {
+                    Some(euclidean_distances(p.view(), q.view()))
+                }
                 _ => None,
             };
-            let matching = match_views_with_norms(
-                ea.view(),
-                eb.view(),
-                na.view(),
-                nb.view(),
-                app,
-                cfg.alpha,
-                cfg.threshold,
-            );
+            let matching = match_from_distances(dg, da.as_ref(), cfg.alpha, cfg.threshold);
             pairs.push(ViewPair {
                 cam_a: a,
                 cam_b: b,

@@ -41,28 +41,65 @@ pub struct Identity {
     pub members: Vec<(usize, usize)>,
 }
 
-/// Best merge partner of a cluster: `(linkage, partner)`.
-type Best = Option<(f32, usize)>;
+/// A merge candidate of a cluster: `(linkage, partner)`.
+type Cand = Option<(f32, usize)>;
 
-/// Working state of the agglomeration over `n` boxes (flattened node indices).
+/// `a` ranks above `b`: higher linkage, ties to the lower partner index (a strict total
+/// order, so the result never depends on the order candidates were seen in).
+fn ranks_above(a: (f32, usize), b: Cand) -> bool {
+    match b {
+        None => true,
+        Some((l, p)) => a.0 > l || (a.0 == l && a.1 < p),
+    }
+}
+
+/// Best and second-best merge partners of a cluster. `second` is exact only while
+/// `second_known`; it is needed only when the best partner disappears.
+#[derive(Debug, Clone, Copy, Default)]
+struct Top2 {
+    best: Cand,
+    second: Cand,
+    second_known: bool,
+}
+
+impl Top2 {
+    fn offer(&mut self, c: (f32, usize)) {
+        if ranks_above(c, self.best) {
+            self.second = self.best;
+            self.best = Some(c);
+        } else if ranks_above(c, self.second) {
+            self.second = Some(c);
+        }
+    }
+}
+
+/// Working state of the agglomeration over `n` boxes (flattened node indices; a cluster is
+/// named by one of its nodes).
 struct Agglomeration {
     n: usize,
-    /// Sum of S over member pairs between clusters (row-major `n × n`, indexed by
-    /// representative node).
+    /// Sum of S over member pairs between clusters (row-major `n × n`).
     sum: Vec<f32>,
     /// Number of scored member pairs between clusters.
     count: Vec<u32>,
     /// Camera bitset of each cluster (`words` u64 per cluster).
     cams: Vec<u64>,
     words: usize,
-    alive: Vec<bool>,
+    /// Clusters still alive, ascending.
+    alive: Vec<usize>,
+    /// Candidate partners of each live cluster, ascending: clusters with at least one member
+    /// pair scoring `S >= threshold` (an average can reach the threshold only then), so
+    /// searches touch a handful of clusters instead of all of them.
+    adj: Vec<Vec<usize>>,
     members: Vec<Vec<usize>>,
-    best: Vec<Best>,
+    top: Vec<Top2>,
     threshold: f32,
 }
 
 impl Agglomeration {
     fn disjoint(&self, r: usize, s: usize) -> bool {
+        if self.words == 1 {
+            return self.cams[r] & self.cams[s] == 0;
+        }
         let (a, b) = (
             &self.cams[r * self.words..(r + 1) * self.words],
             &self.cams[s * self.words..(s + 1) * self.words],
@@ -70,69 +107,111 @@ impl Agglomeration {
         a.iter().zip(b).all(|(x, y)| x & y == 0)
     }
 
-    /// Average linkage between clusters `r` and `s` when they may merge.
+    /// Average linkage between live clusters `r != s` when they may merge (disjoint cameras,
+    /// at least one scored pair, linkage at or above the threshold).
     fn linkage(&self, r: usize, s: usize) -> Option<f32> {
         let k = r * self.n + s;
         let c = self.count[k];
-        if r == s || c == 0 || !self.alive[s] || !self.disjoint(r, s) {
+        if c == 0 || !self.disjoint(r, s) {
             return None;
         }
         let l = self.sum[k] / c as f32;
         (l >= self.threshold).then_some(l)
     }
 
-    fn better(cand: (f32, usize), cur: Best) -> bool {
-        match cur {
-            None => true,
-            // Higher linkage wins; ties go to the lower index (deterministic).
-            Some((l, p)) => cand.0 > l || (cand.0 == l && cand.1 < p),
-        }
-    }
-
-    fn recompute_best(&mut self, r: usize) {
-        let mut best: Best = None;
-        for s in 0..self.n {
-            if let Some(l) = self.linkage(r, s)
-                && Self::better((l, s), best)
-            {
-                best = Some((l, s));
+    fn rescan(&mut self, r: usize) {
+        let mut t = Top2 {
+            second_known: true,
+            ..Top2::default()
+        };
+        for &s in &self.adj[r] {
+            if let Some(l) = self.linkage(r, s) {
+                t.offer((l, s));
             }
         }
-        self.best[r] = best;
+        self.top[r] = t;
     }
 
-    /// Merges cluster `s` into cluster `r` and refreshes the best-partner cache.
+    /// Merges cluster `s` into cluster `r` and refreshes the partner caches: only the
+    /// linkages to `r` and `s` changed (both replaced by the merged cluster, named `r`).
     fn merge(&mut self, r: usize, s: usize) {
         let n = self.n;
-        for k in 0..n {
-            let (rs, ss) = (r * n + k, s * n + k);
-            self.sum[rs] += self.sum[ss];
-            self.count[rs] += self.count[ss];
-            self.sum[k * n + r] = self.sum[rs];
-            self.count[k * n + r] = self.count[rs];
+        for &k in &self.alive {
+            let (rk, sk) = (r * n + k, s * n + k);
+            self.sum[rk] += self.sum[sk];
+            self.count[rk] += self.count[sk];
+            self.sum[k * n + r] = self.sum[rk];
+            self.count[k * n + r] = self.count[rk];
         }
         for w in 0..self.words {
             self.cams[r * self.words + w] |= self.cams[s * self.words + w];
         }
         let moved = std::mem::take(&mut self.members[s]);
         self.members[r].extend(moved);
-        self.alive[s] = false;
-        self.best[s] = None;
-        self.recompute_best(r);
-        for k in 0..n {
-            if !self.alive[k] || k == r {
+        if let Ok(pos) = self.alive.binary_search(&s) {
+            self.alive.remove(pos);
+        }
+        self.top[s] = Top2::default();
+        // Candidate lists: `s` becomes `r` everywhere; `r` gets the union.
+        let adj_s = std::mem::take(&mut self.adj[s]);
+        for &k in &adj_s {
+            if k == r {
                 continue;
             }
-            match self.best[k] {
-                Some((_, p)) if p == r || p == s => self.recompute_best(k),
-                cur => {
-                    if let Some(l) = self.linkage(k, r)
-                        && Self::better((l, r), cur)
-                    {
-                        self.best[k] = Some((l, r));
+            let a = &mut self.adj[k];
+            if let Ok(pos) = a.binary_search(&s) {
+                a.remove(pos);
+            }
+            if let Err(pos) = a.binary_search(&r) {
+                a.insert(pos, r);
+            }
+        }
+        let mut adj_r = std::mem::take(&mut self.adj[r]);
+        adj_r.extend(adj_s);
+        adj_r.sort_unstable();
+        adj_r.dedup();
+        adj_r.retain(|&k| k != r && k != s);
+        self.adj[r] = adj_r;
+        self.rescan(r);
+        let gone = |c: Cand| matches!(c, Some((_, p)) if p == r || p == s);
+        // Only neighbours of `r` or `s` can have had them as candidates.
+        for idx in 0..self.adj[r].len() {
+            let k = self.adj[r][idx];
+            let new = self.linkage(k, r).map(|l| (l, r));
+            let mut t = self.top[k];
+            if gone(t.best) {
+                if !t.second_known || gone(t.second) {
+                    self.rescan(k);
+                    continue;
+                }
+                // The old second now leads the unchanged candidates.
+                match new {
+                    Some(c) if ranks_above(c, t.second) => t.best = Some(c),
+                    _ => {
+                        t.best = t.second;
+                        // Candidates below the old second may outrank `new`: unknown.
+                        t.second_known = false;
                     }
                 }
+            } else if gone(t.second) {
+                match new {
+                    Some(c) if ranks_above(c, t.best) => {
+                        t.second = t.best;
+                        t.best = Some(c);
+                        t.second_known = true;
+                    }
+                    _ => t.second_known = false,
+                }
+            } else if let Some(c) = new {
+                if ranks_above(c, t.best) {
+                    t.second = t.best;
+                    t.best = Some(c);
+                    t.second_known = true;
+                } else if t.second_known && ranks_above(c, t.second) {
+                    t.second = Some(c);
+                }
             }
+            self.top[k] = t;
         }
     }
 }
@@ -170,6 +249,7 @@ pub fn build_identities(view_sizes: &[usize], pairs: &[ViewPair], threshold: f32
     let mut count = vec![0u32; n * n];
     // Highest S of each box to any box of another camera (for singleton confidence).
     let mut max_s = vec![f32::NEG_INFINITY; n];
+    let mut adj: Vec<Vec<usize>> = vec![Vec::new(); n];
     for p in pairs {
         let (ca, cb) = (p.cam_a, p.cam_b);
         let s = &p.matching.scores;
@@ -192,7 +272,15 @@ pub fn build_identities(view_sizes: &[usize], pairs: &[ViewPair], threshold: f32
             count[j * n + i] += 1;
             max_s[i] = max_s[i].max(v);
             max_s[j] = max_s[j].max(v);
+            if v >= threshold {
+                adj[i].push(j);
+                adj[j].push(i);
+            }
         }
+    }
+    for a in &mut adj {
+        a.sort_unstable();
+        a.dedup();
     }
     let mut ag = Agglomeration {
         n,
@@ -200,18 +288,20 @@ pub fn build_identities(view_sizes: &[usize], pairs: &[ViewPair], threshold: f32
         count,
         cams,
         words,
-        alive: vec![true; n],
+        alive: (0..n).collect(),
+        adj,
         members: (0..n).map(|i| vec![i]).collect(),
-        best: vec![None; n],
+        top: vec![Top2::default(); n],
         threshold,
     };
     for r in 0..n {
-        ag.recompute_best(r);
+        ag.rescan(r);
     }
     loop {
+        // The globally best pair: highest linkage, ties to the lowest (lo, hi) node pair.
         let mut pick: Option<(f32, usize, usize)> = None;
-        for r in 0..n {
-            if let (true, Some((l, s))) = (ag.alive[r], ag.best[r]) {
+        for &r in &ag.alive {
+            if let Some((l, s)) = ag.top[r].best {
                 let (lo, hi) = (r.min(s), r.max(s));
                 let better = match pick {
                     None => true,
@@ -227,9 +317,10 @@ pub fn build_identities(view_sizes: &[usize], pairs: &[ViewPair], threshold: f32
             None => break,
         }
     }
+    let alive = std::mem::take(&mut ag.alive);
     // Identities, ordered by their first member (camera, index).
-    let mut clusters: Vec<Vec<usize>> = (0..n)
-        .filter(|&r| ag.alive[r])
+    let mut clusters: Vec<Vec<usize>> = alive
+        .into_iter()
         .map(|r| {
             let mut m = std::mem::take(&mut ag.members[r]);
             m.sort_unstable();
@@ -463,5 +554,106 @@ mod tests {
         let ids = build_identities(&vec![1; c], &pairs, 0.4);
         assert_eq!(ids.len(), 1);
         assert_eq!(ids[0].members.len(), c);
+    }
+
+    /// Straightforward O(N³) agglomeration with the same rules and tie-breaks (clusters named
+    /// by their smallest node), to check the cached implementation against.
+    fn naive(sizes: &[usize], pairs: &[ViewPair], threshold: f32) -> Vec<Vec<(usize, usize)>> {
+        let nodes: Vec<(usize, usize)> = sizes
+            .iter()
+            .enumerate()
+            .flat_map(|(c, &k)| (0..k).map(move |i| (c, i)))
+            .collect();
+        let score = |x: (usize, usize), y: (usize, usize)| -> Option<f32> {
+            pairs.iter().find_map(|p| {
+                if (p.cam_a, p.cam_b) == (x.0, y.0) {
+                    Some(p.matching.scores[(x.1, y.1)])
+                } else if (p.cam_a, p.cam_b) == (y.0, x.0) {
+                    Some(p.matching.scores[(y.1, x.1)])
+                } else {
+                    None
+                }
+            })
+        };
+        let mut clusters: Vec<Vec<usize>> = (0..nodes.len()).map(|i| vec![i]).collect();
+        loop {
+            let mut pick: Option<(f32, usize, usize)> = None;
+            for a in 0..clusters.len() {
+                for b in a + 1..clusters.len() {
+                    let (ca, cb) = (&clusters[a], &clusters[b]);
+                    if ca
+                        .iter()
+                        .any(|&i| cb.iter().any(|&j| nodes[i].0 == nodes[j].0))
+                    {
+                        continue;
+                    }
+                    let (mut sum, mut cnt) = (0f32, 0u32);
+                    for &i in ca {
+                        for &j in cb {
+                            if let Some(v) = score(nodes[i], nodes[j]) {
+                                sum += v;
+                                cnt += 1;
+                            }
+                        }
+                    }
+                    if cnt == 0 {
+                        continue;
+                    }
+                    let l = sum / cnt as f32;
+                    if l < threshold {
+                        continue;
+                    }
+                    let (ra, rb) = (ca[0].min(cb[0]), ca[0].max(cb[0]));
+                    let better = match pick {
+                        None => true,
+                        Some((pl, pa, pb)) => {
+                            let (qa, qb) = (clusters[pa][0], clusters[pb][0]);
+                            l > pl || (l == pl && (ra, rb) < (qa.min(qb), qa.max(qb)))
+                        }
+                    };
+                    if better {
+                        pick = Some((l, a, b));
+                    }
+                }
+            }
+            let Some((_, a, b)) = pick else { break };
+            let moved = clusters.remove(b);
+            clusters[a].extend(moved);
+            clusters[a].sort_unstable();
+        }
+        clusters.sort_unstable_by_key(|c| c[0]);
+        clusters
+            .into_iter()
+            .map(|c| c.into_iter().map(|i| nodes[i]).collect())
+            .collect()
+    }
+
+    proptest::proptest! {
+        #[test]
+        fn cached_agglomeration_equals_naive(
+            sizes in proptest::collection::vec(0usize..7, 2..6),
+            raw in proptest::collection::vec(0u8..=64, 400),
+            t in 0u8..=64,
+        ) {
+            // Scores on a 1/64 grid: every partial sum is exact in f32, so both
+            // implementations see identical linkages (and identical ties).
+            let mut k = 0;
+            let mut pairs = Vec::new();
+            for a in 0..sizes.len() {
+                for b in a + 1..sizes.len() {
+                    if sizes[a] == 0 || sizes[b] == 0 {
+                        continue;
+                    }
+                    let s = Array2::from_shape_fn((sizes[a], sizes[b]), |_| {
+                        k += 1;
+                        raw[k % raw.len()] as f32 / 64.0
+                    });
+                    pairs.push(pair(a, b, s, 0.0));
+                }
+            }
+            let threshold = t as f32 / 64.0;
+            let got = members(&build_identities(&sizes, &pairs, threshold));
+            proptest::prop_assert_eq!(got, naive(&sizes, &pairs, threshold));
+        }
     }
 }

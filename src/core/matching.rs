@@ -88,6 +88,54 @@ pub fn euclidean_distances_with_norms(
     d
 }
 
+/// Geometric distances of every view pair `a < b` of a frame, in the order
+/// `(0,1), (0,2), …, (1,2), …`: `views[k]` is `[n_k, d]` (every view with at least one box).
+///
+/// Faster than one [`euclidean_distances`] per pair: the later views are copied once into one
+/// contiguous matrix, so each view needs a single matrix product against all views after it
+/// (k − 1 larger products instead of k(k−1)/2 small ones).
+///
+/// # Panics
+/// When the views have different widths (a programming error: one encoder made them all).
+pub fn all_pairs_distances(views: &[ArrayView2<f32>]) -> Vec<Array2<f32>> {
+    let k = views.len();
+    if k < 2 {
+        return Vec::new();
+    }
+    let dim = views[0].ncols();
+    assert!(
+        views.iter().all(|v| v.ncols() == dim),
+        "all_pairs_distances: embedding widths differ"
+    );
+    let norms: Vec<Array1<f32>> = views.iter().map(|v| row_sq_norms(*v)).collect();
+    // Row offset of view b (b >= 1) inside `rest` = concat(views[1..]).
+    let mut offsets = vec![0usize; k + 1];
+    for b in 1..k {
+        offsets[b + 1] = offsets[b] + views[b].nrows();
+    }
+    let mut data = Vec::with_capacity(offsets[k] * dim);
+    for v in &views[1..] {
+        match v.as_slice() {
+            Some(sl) => data.extend_from_slice(sl),
+            None => v.rows().into_iter().for_each(|r| data.extend(r.iter())),
+        }
+    }
+    let rest = ArrayView2::from_shape((offsets[k], dim), &data).expect("sized above");
+    let mut out = Vec::with_capacity(k * (k - 1) / 2);
+    for a in 0..k - 1 {
+        let start = offsets[a + 1];
+        let gram = views[a].dot(&rest.slice(ndarray::s![start.., ..]).t());
+        let na = &norms[a];
+        for (b, nb) in norms.iter().enumerate().skip(a + 1) {
+            let col = offsets[b] - start;
+            out.push(Array2::from_shape_fn((na.len(), nb.len()), |(i, j)| {
+                (na[i] + nb[j] - 2.0 * gram[(i, col + j)]).max(0.0).sqrt()
+            }));
+        }
+    }
+    out
+}
+
 /// Largest finite value of `m` (0 when there is none). NaN and infinities are skipped so
 /// that one bad entry cannot turn the whole matrix into NaN.
 fn finite_max(m: &Array2<f32>) -> f32 {
@@ -268,7 +316,7 @@ pub fn match_views_with_norms(
     alpha: f32,
     threshold: f32,
 ) -> PairMatching {
-    let mut d = euclidean_distances_with_norms(emb_a, emb_b, norms_a, norms_b);
+    let d = euclidean_distances_with_norms(emb_a, emb_b, norms_a, norms_b);
     let da = appearance.and_then(|(x, y)| {
         if x.nrows() == emb_a.nrows() && y.nrows() == emb_b.nrows() && x.ncols() == y.ncols() {
             Some(euclidean_distances(x, y))
@@ -277,18 +325,33 @@ pub fn match_views_with_norms(
             None
         }
     });
-    normalize_in_place(&mut d, da.as_ref(), alpha);
-    let pairs = hungarian(d.view());
+    match_from_distances(d, da.as_ref(), alpha, threshold)
+}
+
+/// The SPEC §3 steps after the distances: normalise `dg` (fusing `da` when given, same
+/// shape), Hungarian on `D`, `S = 1 − D`, keep pairs with `S ≥ threshold`. `dg` is reused
+/// as the score matrix (no extra allocation).
+pub fn match_from_distances(
+    mut dg: Array2<f32>,
+    da: Option<&Array2<f32>>,
+    alpha: f32,
+    threshold: f32,
+) -> PairMatching {
+    normalize_in_place(&mut dg, da, alpha);
+    let pairs = hungarian(dg.view());
     // S = 1 - D, in place.
-    d.mapv_inplace(|v| 1.0 - v);
+    dg.mapv_inplace(|v| 1.0 - v);
     let matches = pairs
         .into_iter()
         .filter_map(|(a, b)| {
-            let score = d[(a, b)];
+            let score = dg[(a, b)];
             (score >= threshold).then_some(Match { a, b, score })
         })
         .collect();
-    PairMatching { scores: d, matches }
+    PairMatching {
+        scores: dg,
+        matches,
+    }
 }
 
 #[cfg(test)]
@@ -373,6 +436,31 @@ mod tests {
         for (x, y) in d.iter().zip(want.iter()) {
             assert!((x - y).abs() < 1e-5, "{d:?}");
         }
+    }
+
+    #[test]
+    fn all_pairs_distances_equal_per_pair_distances() {
+        let v0 = array![[0.0f32, 1.0], [2.0, 3.0]];
+        let v1 = array![[1.0f32, 1.0]];
+        let v2 = array![[5.0f32, 0.0], [0.0, 5.0], [1.0, 2.0]];
+        // A non-contiguous view (a transposed array) is handled too.
+        let v3t = array![[1.0f32, 2.0], [3.0, 4.0]];
+        let v3 = v3t.t();
+        let views = [v0.view(), v1.view(), v2.view(), v3];
+        let all = all_pairs_distances(&views);
+        let mut k = 0;
+        for a in 0..4 {
+            for b in a + 1..4 {
+                let want = euclidean_distances(views[a], views[b]);
+                assert_eq!(all[k].dim(), want.dim());
+                for (x, y) in all[k].iter().zip(want.iter()) {
+                    assert!((x - y).abs() < 1e-5);
+                }
+                k += 1;
+            }
+        }
+        assert_eq!(k, all.len());
+        assert!(all_pairs_distances(&views[..1]).is_empty());
     }
 
     #[test]

@@ -47,15 +47,19 @@ pub fn library_candidates() -> Vec<PathBuf> {
     out
 }
 
-fn init_environment() -> std::result::Result<Environment, String> {
-    let candidates = library_candidates();
-    let Some(path) = candidates.iter().find(|p| p.is_file()) else {
+/// The first existing file among `candidates`, or the "not found" message listing them all.
+pub fn find_library(candidates: &[PathBuf]) -> std::result::Result<PathBuf, String> {
+    candidates.iter().find(|p| p.is_file()).cloned().ok_or_else(|| {
         let looked: Vec<String> = candidates.iter().map(|p| p.display().to_string()).collect();
-        return Err(format!(
+        format!(
             "ONNX Runtime library not found (looked in {}); run `make setup` or set ORT_DYLIB_PATH",
             looked.join(", ")
-        ));
-    };
+        )
+    })
+}
+
+fn init_environment() -> std::result::Result<Environment, String> {
+    let path = &find_library(&library_candidates())?;
     tracing::debug!(path = %path.display(), "loading ONNX Runtime");
     let builder =
         ort::init_from(path).map_err(|e| format!("cannot load {}: {e}", path.display()))?;
@@ -297,4 +301,39 @@ pub fn check_contract(
         ));
     }
     Ok(dim)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn missing_library_message_lists_places_and_fix() {
+        let dir = tempfile::tempdir().unwrap();
+        let a = dir.path().join("nope.so");
+        let err = find_library(std::slice::from_ref(&a)).unwrap_err();
+        assert!(
+            err.contains("not found") && err.contains("nope.so"),
+            "{err}"
+        );
+        assert!(
+            err.contains("make setup") && err.contains("ORT_DYLIB_PATH"),
+            "{err}"
+        );
+        std::fs::write(&a, b"x").unwrap();
+        assert_eq!(
+            find_library(&[dir.path().join("b.so"), a.clone()]).unwrap(),
+            a
+        );
+    }
+
+    #[test]
+    fn candidates_start_with_env_then_project_cache() {
+        let c = library_candidates();
+        assert!(
+            c.iter()
+                .any(|p| p.ends_with(format!(".cache/onnxruntime/{ORT_LIBRARY_NAME}")))
+        );
+        assert!(c.iter().any(|p| p.starts_with("/usr/lib")));
+    }
 }

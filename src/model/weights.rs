@@ -10,9 +10,13 @@ use crate::{Error, Result};
 /// A dense layer `y = x W^T + b` with `weight` row-major `[out_dim, in_dim]`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Linear {
+    /// Input features.
     pub in_dim: usize,
+    /// Output features.
     pub out_dim: usize,
+    /// Row-major `[out_dim, in_dim]`.
     pub weight: Vec<f32>,
+    /// `[out_dim]`.
     pub bias: Vec<f32>,
 }
 
@@ -94,9 +98,13 @@ fn check_len(name: &str, values: &[f32], expected: usize) -> Result<()> {
 /// camera_dim` an input projection maps `x0` to `width` before the blocks.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct EncoderConfig {
+    /// Columns F of the Fourier matrix `B` (features per corner: 2F).
     pub fourier_features: usize,
+    /// Width of a camera embedding row.
     pub camera_dim: usize,
+    /// Embedding width G (width of every residual block).
     pub width: usize,
+    /// Number of residual blocks.
     pub blocks: usize,
 }
 
@@ -155,7 +163,9 @@ pub const DEFAULT_LAYER_NORM_EPS: f32 = 1e-5;
 /// 5. The last block's output is the embedding (not L2-normalised).
 #[derive(Debug, Clone, PartialEq)]
 pub struct EncoderWeights {
+    /// Shape of the encoder.
     pub config: EncoderConfig,
+    /// Rows of the camera embedding table (cameras of the scene, in index order).
     pub num_cameras: usize,
     /// Frozen Fourier matrix `B`, row-major `[2, fourier_features]`.
     pub fourier: Vec<f32>,

@@ -11,7 +11,6 @@ pub mod checkpoint;
 pub mod curve;
 pub mod data;
 pub mod losses;
-pub mod metrics_bridge;
 pub mod model;
 pub mod sampler;
 pub mod trainer;

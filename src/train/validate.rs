@@ -1,8 +1,10 @@
 //! Validation during training: the candle model as an [`Encoder`], scored on labelled frames
-//! through the evaluation code, with the inference threshold chosen on that data (SPEC §3:
-//! the paper picks it from 0.0–0.9).
+//! through the evaluation code ([`crate::eval`]), with the inference threshold chosen on that
+//! data (SPEC §3: the paper picks it from 0.0–0.9).
 use ndarray::Array2;
 
+use crate::core::association::Mode;
+use crate::eval::driver::evaluate_settings;
 use crate::io::Recording;
 use crate::model::Encoder;
 use crate::train::model::TrainModel;
@@ -89,9 +91,22 @@ impl EvalValidator {
         })
     }
 
-    /// Scores of `encoder` at each candidate threshold.
+    /// Scores of `encoder` at each candidate threshold (pairwise matching, SPEC §5), computed
+    /// by the evaluation driver: every frame is embedded once.
     pub fn scores_per_threshold(&self, encoder: &mut dyn Encoder) -> Result<Vec<ValScores>> {
-        crate::train::metrics_bridge::scores(&self.recording, encoder, &self.thresholds, self.alpha)
+        let settings: Vec<(Mode, f32)> =
+            self.thresholds.iter().map(|&t| (Mode::Pairwise, t)).collect();
+        let runs = evaluate_settings(encoder, &self.recording, self.alpha, &settings)?;
+        Ok(runs
+            .iter()
+            .map(|r| ValScores {
+                acc: r.metrics.acc,
+                ipaa100: r.metrics.ipaa_100,
+                precision: r.metrics.precision,
+                recall: r.metrics.recall,
+                threshold: r.threshold,
+            })
+            .collect())
     }
 }
 
