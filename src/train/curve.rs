@@ -10,6 +10,9 @@ const W: f64 = 480.0;
 const H: f64 = 300.0;
 const PAD: f64 = 45.0;
 
+/// One plotted line: name, colour and `(x, y)` points.
+type Series<'a> = (&'a str, &'a str, Vec<(f64, f64)>);
+
 /// Renders `history` as an SVG document.
 pub fn render_svg(history: &[EpochRecord], title: &str) -> String {
     let mut s = String::new();
@@ -49,7 +52,7 @@ pub fn render_svg(history: &[EpochRecord], title: &str) -> String {
             history.iter().map(|r| r.edge as f64).collect(),
         ),
     ];
-    let series: Vec<(&str, &str, Vec<(f64, f64)>)> = losses
+    let series: Vec<Series> = losses
         .iter()
         .map(|(n, c, v)| {
             (
@@ -85,13 +88,7 @@ pub fn write_svg(path: &Path, history: &[EpochRecord], title: &str) -> Result<()
     std::fs::write(path, render_svg(history, title)).map_err(|e| Error::io(path, e))
 }
 
-fn panel(
-    s: &mut String,
-    x0: f64,
-    title: &str,
-    series: &[(&str, &str, Vec<(f64, f64)>)],
-    y_range: Option<(f64, f64)>,
-) {
+fn panel(s: &mut String, x0: f64, title: &str, series: &[Series], y_range: Option<(f64, f64)>) {
     let pts = series.iter().flat_map(|(_, _, p)| p.iter());
     let (mut xmin, mut xmax, mut ymin, mut ymax) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
     for &(x, y) in pts.filter(|(x, y)| x.is_finite() && y.is_finite()) {

@@ -94,8 +94,11 @@ impl EvalValidator {
     /// Scores of `encoder` at each candidate threshold (pairwise matching, SPEC §5), computed
     /// by the evaluation driver: every frame is embedded once.
     pub fn scores_per_threshold(&self, encoder: &mut dyn Encoder) -> Result<Vec<ValScores>> {
-        let settings: Vec<(Mode, f32)> =
-            self.thresholds.iter().map(|&t| (Mode::Pairwise, t)).collect();
+        let settings: Vec<(Mode, f32)> = self
+            .thresholds
+            .iter()
+            .map(|&t| (Mode::Pairwise, t))
+            .collect();
         let runs = evaluate_settings(encoder, &self.recording, self.alpha, &settings)?;
         Ok(runs
             .iter()
