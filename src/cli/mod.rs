@@ -7,6 +7,7 @@ pub mod import;
 pub mod model;
 pub mod serve;
 pub mod simulate;
+pub mod train;
 
 /// Self-supervised multi-view person association: train, evaluate, serve.
 #[derive(Debug, Parser)]
@@ -64,6 +65,8 @@ pub enum Command {
     Associate(eval::AssociateArgs),
     /// Generate a synthetic multi-camera recording (SPEC §7) with ground-truth ids.
     Simulate(simulate::SimulateArgs),
+    /// Train an encoder self-supervised on a recording and export it as ONNX.
+    Train(train::TrainArgs),
 }
 
 /// Entry point used by `main`.
@@ -78,5 +81,6 @@ pub fn run() -> anyhow::Result<()> {
         Command::Eval(args) => eval::run(args),
         Command::Associate(args) => eval::run_associate(args),
         Command::Simulate(args) => simulate::run(args),
+        Command::Train(args) => train::run(args),
     }
 }
