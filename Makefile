@@ -3,7 +3,7 @@ SHELL := /bin/bash
 ORT_DYLIB_PATH ?= $(CURDIR)/.cache/onnxruntime/libonnxruntime.so.1.31.1
 export ORT_DYLIB_PATH
 
-.PHONY: setup build test lint fmt
+.PHONY: setup build test lint fmt demo
 
 ## setup: fetch the ONNX Runtime library from PyPI into .cache/ (once)
 setup:
@@ -22,3 +22,10 @@ lint:
 
 fmt:
 	cargo fmt
+
+## demo: the newcomer's tour — the real server in-process with models/demo.onnx, a simulated
+## 4-camera scene streamed into it over gRPC, identities and running accuracy per frame.
+## Options pass through DEMO_ARGS, e.g. `make demo DEMO_ARGS="--frames 300 --noisy"`.
+demo: setup
+	cargo build --release
+	./target/release/crossview demo $(DEMO_ARGS)

@@ -8,10 +8,12 @@
 //! - [`sim`]: a synthetic multi-camera scene simulator with ground truth.
 //! - [`train`]: the self-supervised trainer (SPEC §2–§4).
 //! - [`serve`]: the streaming association service (gRPC + HTTP).
+//! - [`demo`]: the newcomer's demo client (simulated scene → server → live accuracy).
 //! - [`cli`]: the `crossview` command line.
 
 pub mod cli;
 pub mod core;
+pub mod demo;
 pub mod error;
 pub mod eval;
 pub mod io;

@@ -2,6 +2,7 @@
 //! handler per subcommand. Kept thin: each handler calls into the library.
 use clap::{Parser, Subcommand};
 
+pub mod demo;
 pub mod eval;
 pub mod import;
 pub mod model;
@@ -67,6 +68,8 @@ pub enum Command {
     Simulate(simulate::SimulateArgs),
     /// Train an encoder self-supervised on a recording and export it as ONNX.
     Train(train::TrainArgs),
+    /// Stream a simulated scene through the server and show the association and its accuracy live.
+    Demo(demo::DemoArgs),
 }
 
 /// Entry point used by `main`.
@@ -82,5 +85,6 @@ pub fn run() -> anyhow::Result<()> {
         Command::Associate(args) => eval::run_associate(args),
         Command::Simulate(args) => simulate::run(args),
         Command::Train(args) => train::run(args),
+        Command::Demo(args) => demo::run(args),
     }
 }
