@@ -36,7 +36,7 @@ pub struct DemoArgs {
     /// Frames to stream before stopping (Ctrl-C stops earlier).
     #[arg(long, env = "CROSSVIEW_DEMO_FRAMES", default_value_t = 150)]
     pub frames: u64,
-    /// Simulator seed (the demo model was trained on seed 1 and validated on seed 2).
+    /// Simulator seed (models/demo.onnx was trained on seed 1, validated on seed 2, tested on seed 3).
     #[arg(long, env = "CROSSVIEW_DEMO_SEED", default_value_t = 7)]
     pub seed: u64,
     /// Frames per second to send (0 = as fast as the server answers).
@@ -164,4 +164,67 @@ fn print_frame(r: &FrameReport) {
     let mut out = std::io::stdout().lock();
     let _ = writeln!(out, "{}", frame_line(r));
     let _ = out.flush();
+}
+
+/// Hidden `crossview bench-pipeline`: in-process frames/s of encoder + pairwise matchings +
+/// identities on a recording (the Rust side of `bench/compare_python.sh`).
+#[derive(Debug, Args)]
+pub struct BenchPipelineArgs {
+    /// Model file (SPEC §8 ONNX) for the recording's scene.
+    #[arg(long)]
+    pub model: std::path::PathBuf,
+    /// Recording (SPEC §7 JSONL); ids, if any, are ignored.
+    #[arg(long)]
+    pub data: std::path::PathBuf,
+    /// ONNX Runtime intra-op threads (inter-op is always 1).
+    #[arg(long, default_value_t = 1)]
+    pub threads: usize,
+    /// Untimed warm-up frames.
+    #[arg(long, default_value_t = 20)]
+    pub warmup: usize,
+    /// Timed passes over the recording.
+    #[arg(long, default_value_t = 3)]
+    pub repeat: usize,
+    /// Confidence threshold (default: the model's).
+    #[arg(long)]
+    pub threshold: Option<f32>,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Runs `crossview bench-pipeline`.
+pub fn run_bench_pipeline(args: BenchPipelineArgs) -> anyhow::Result<()> {
+    use crate::model::{EncoderOptions, OnnxEncoder};
+    let recording = crate::io::read_recording(&args.data)?;
+    let mut encoder = OnnxEncoder::load_with(
+        &args.model,
+        EncoderOptions {
+            intra_threads: args.threads,
+        },
+    )?;
+    let threshold = args.threshold.unwrap_or(encoder.metadata().threshold);
+    let t = crate::demo::throughput::measure(
+        &mut encoder,
+        &recording,
+        threshold,
+        args.warmup,
+        args.repeat,
+    )?;
+    if args.json {
+        println!("{}", serde_json::to_string(&t)?);
+    } else {
+        println!(
+            "rust: {:.1} frames/s ({} frames, {:.1} boxes and {:.1} camera pairs per frame, encoder {:.0}% of {:.2} s, {} threads); kept matches (one pass): {}",
+            t.frames_per_second,
+            t.frames,
+            t.boxes_per_frame,
+            t.pairs_per_frame,
+            100.0 * t.encoder_seconds / t.seconds,
+            t.seconds,
+            args.threads,
+            t.kept_matches
+        );
+    }
+    Ok(())
 }

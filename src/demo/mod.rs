@@ -8,6 +8,7 @@
 //! scores it with [`score`] (SPEC §5, via `crate::eval::metrics`). [`start_local_server`]
 //! starts the real server in-process on a loopback port for `crossview demo`.
 pub mod score;
+pub mod throughput;
 
 use std::future::Future;
 use std::net::SocketAddr;

@@ -1,0 +1,68 @@
+#!/usr/bin/env bash
+# Rust pipeline vs the Python reference (bench/python_reference.py) on the same model and the
+# same WILDTRACK-sized frames, in one run: frames/s of each and the ratio.
+#
+# Work per frame, both sides: one ONNX Runtime encoder call over every box (1 intra-op thread,
+# 1 inter-op thread by default), then SPEC §3 matching of every camera pair (21 for 7 cameras):
+# distances, max-normalisation, Hungarian, threshold. The Rust side also builds the global
+# identities (extra work the reference does not do). Reading the recording is not timed.
+#
+# Usage: bench/compare_python.sh [WIDTH ...]      (default widths: 64 768)
+# Environment: PEOPLE (95 → ~35 boxes per camera), FRAMES (200), THREADS (1), REPEAT (3),
+#              SEED (11), PYTHON (python3).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PEOPLE=${PEOPLE:-95}
+FRAMES=${FRAMES:-200}
+THREADS=${THREADS:-1}
+REPEAT=${REPEAT:-3}
+SEED=${SEED:-11}
+PYTHON=${PYTHON:-python3}
+WIDTHS=("$@")
+[ ${#WIDTHS[@]} -gt 0 ] || WIDTHS=(64 768)
+
+bash scripts/setup.sh
+export ORT_DYLIB_PATH=${ORT_DYLIB_PATH:-$PWD/.cache/onnxruntime/libonnxruntime.so.1.31.1}
+
+VENV=.cache/bench-venv
+if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import numpy, scipy, onnxruntime' 2>/dev/null; then
+  echo "compare: creating $VENV with numpy, scipy, onnxruntime==1.31.1 (PyPI)" >&2
+  "$PYTHON" -m venv "$VENV"
+  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check \
+    numpy scipy "onnxruntime==1.31.1"
+fi
+
+cargo build --release --quiet
+BIN=./target/release/crossview
+WORK=.cache/bench-compare
+mkdir -p "$WORK"
+DATA="$WORK/wildtrack_p${PEOPLE}_f${FRAMES}_s${SEED}.jsonl"
+[ -f "$DATA" ] || RUST_LOG=warn "$BIN" simulate --preset wildtrack --people "$PEOPLE" \
+  --frames "$FRAMES" --seed "$SEED" --clean --no-ids --out "$DATA"
+
+echo "machine: $(lscpu | sed -n 's/^Model name: *//p') | $(nproc) cores | load $(cut -d' ' -f1-3 /proc/loadavg)"
+echo "data: $DATA (wildtrack preset, 7 cameras, $PEOPLE people, $FRAMES frames); threads $THREADS; $REPEAT timed passes"
+for W in "${WIDTHS[@]}"; do
+  MODEL="$WORK/wildtrack_w${W}.onnx"
+  if [ ! -f "$MODEL" ]; then
+    if [ "$W" = 768 ]; then
+      RUST_LOG=warn "$BIN" model init --scene-from "$DATA" --out "$MODEL" --seed 3
+    else
+      RUST_LOG=warn "$BIN" model init --scene-from "$DATA" --out "$MODEL" --seed 3 \
+        --width "$W" --fourier 32 --camera-dim 32
+    fi
+  fi
+  RUST=$(RUST_LOG=warn "$BIN" bench-pipeline --model "$MODEL" --data "$DATA" \
+    --threads "$THREADS" --repeat "$REPEAT" --json)
+  PY=$("$VENV/bin/python" bench/python_reference.py --model "$MODEL" --data "$DATA" \
+    --threads "$THREADS" --repeat "$REPEAT")
+  "$VENV/bin/python" - "$W" "$RUST" "$PY" <<'PY'
+import json, sys
+w, rust, py = sys.argv[1], json.loads(sys.argv[2]), json.loads(sys.argv[3])
+r, p = rust["frames_per_second"], py["frames_per_second"]
+print(f"width {w:>4}: rust {r:8.1} frames/s (encoder {100 * rust['encoder_seconds'] / rust['seconds']:.0f}% of time, "
+      f"{rust['boxes_per_frame']:.1f} boxes, {rust['pairs_per_frame']:.1f} pairs/frame) | "
+      f"python {p:8.1} frames/s | ratio {r / p:5.2f}x | kept matches rust {rust['kept_matches']} python {py['kept_matches']}")
+PY
+done
