@@ -6,6 +6,7 @@ pub mod eval;
 pub mod import;
 pub mod model;
 pub mod serve;
+pub mod simulate;
 
 /// Self-supervised multi-view person association: train, evaluate, serve.
 #[derive(Debug, Parser)]
@@ -61,6 +62,8 @@ pub enum Command {
     Eval(eval::EvalArgs),
     /// Global identities for every frame of a recording, one JSON line per frame.
     Associate(eval::AssociateArgs),
+    /// Generate a synthetic multi-camera recording (SPEC §7) with ground-truth ids.
+    Simulate(simulate::SimulateArgs),
 }
 
 /// Entry point used by `main`.
@@ -74,5 +77,6 @@ pub fn run() -> anyhow::Result<()> {
         Command::Model(args) => model::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Associate(args) => eval::run_associate(args),
+        Command::Simulate(args) => simulate::run(args),
     }
 }
