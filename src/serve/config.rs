@@ -90,8 +90,8 @@ pub struct TlsConfig {
     pub key: PathBuf,
 }
 
-/// Everything [`super::Server`] needs.
-#[derive(Debug, Clone)]
+/// Everything [`super::Server`] needs. Its `Debug` output redacts the API keys.
+#[derive(Clone)]
 pub struct ServeConfig {
     /// Models to load, one scene each.
     pub models: Vec<ModelSpec>,
@@ -107,6 +107,23 @@ pub struct ServeConfig {
     pub limits: Limits,
     /// How long graceful shutdown waits for open connections after flushing.
     pub shutdown_grace: Duration,
+}
+
+impl std::fmt::Debug for ServeConfig {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ServeConfig")
+            .field("models", &self.models)
+            .field("sync_timeout", &self.sync_timeout)
+            .field("max_pending_frames", &self.max_pending_frames)
+            .field(
+                "api_keys",
+                &format_args!("<{} redacted>", self.api_keys.len()),
+            )
+            .field("tls", &self.tls)
+            .field("limits", &self.limits)
+            .field("shutdown_grace", &self.shutdown_grace)
+            .finish()
+    }
 }
 
 impl Default for ServeConfig {
@@ -135,5 +152,18 @@ mod tests {
         let m = ModelSpec::parse("/tmp/x/wildtrack.onnx").unwrap();
         assert_eq!(m.name, "wildtrack");
         assert!(ModelSpec::parse("bad name=/x.onnx").is_err());
+    }
+
+    #[test]
+    fn debug_output_redacts_api_keys() {
+        let c = ServeConfig {
+            api_keys: vec!["s3cret".into()],
+            ..ServeConfig::default()
+        };
+        let text = format!("{c:?}");
+        assert!(
+            !text.contains("s3cret") && text.contains("<1 redacted>"),
+            "{text}"
+        );
     }
 }

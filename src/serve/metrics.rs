@@ -115,6 +115,13 @@ impl Metrics {
             .set(n as f64);
     }
 
+    /// Live result subscribers (gRPC Subscribe/Stream and SSE) of a scene.
+    pub fn subscribers(&self, scene: &str, n: usize) {
+        self.recorder
+            .register_gauge(&key("crossview_subscribers", &[("scene", scene)]), &META)
+            .set(n as f64);
+    }
+
     /// Frame latency: first batch to result published.
     pub fn frame_latency(&self, scene: &str, d: Duration) {
         self.observe("crossview_frame_latency_seconds", &[("scene", scene)], d);

@@ -64,6 +64,7 @@ pub struct Scene {
     /// Appearance length fixed by the first vector accepted (0 = unknown).
     appearance_len: AtomicUsize,
     closed: AtomicBool,
+    subscribers: Arc<AtomicUsize>,
     results: Mutex<Option<broadcast::Sender<Arc<FrameResult>>>>,
     /// Wakes the timer task when a new frame starts waiting.
     pub(crate) wake: Notify,
@@ -126,6 +127,7 @@ impl Scene {
             queued,
             appearance_len: AtomicUsize::new(0),
             closed: AtomicBool::new(false),
+            subscribers: Arc::new(AtomicUsize::new(0)),
             results: Mutex::new(Some(results)),
             wake: Notify::new(),
             worker: Mutex::new(Some(handle)),
@@ -364,12 +366,23 @@ impl Scene {
         }
     }
 
-    /// A receiver of this scene's frame results from now on, or `Unavailable` after shutdown.
-    pub fn subscribe(&self) -> Result<broadcast::Receiver<Arc<FrameResult>>> {
-        lock(&self.results)
+    /// A receiver of this scene's frame results from now on, or `Unavailable` after shutdown;
+    /// the guard keeps the subscriber counted (`crossview_subscribers`) until dropped.
+    pub fn subscribe(&self) -> Result<(broadcast::Receiver<Arc<FrameResult>>, SubscriberGuard)> {
+        let rx = lock(&self.results)
             .as_ref()
             .map(broadcast::Sender::subscribe)
-            .ok_or_else(|| Error::Unavailable("server is shutting down".into()))
+            .ok_or_else(|| Error::Unavailable("server is shutting down".into()))?;
+        let n = self.subscribers.fetch_add(1, Ordering::AcqRel) + 1;
+        self.metrics.subscribers(self.name(), n);
+        Ok((
+            rx,
+            SubscriberGuard {
+                count: self.subscribers.clone(),
+                metrics: self.metrics.clone(),
+                scene: self.name().to_string(),
+            },
+        ))
     }
 
     /// Graceful shutdown of this scene: refuses new work, flushes pending frames as partial
@@ -391,6 +404,21 @@ impl Scene {
             tracing::error!(scene = self.name(), "encoder worker panicked");
         }
         lock(&self.results).take();
+    }
+}
+
+/// Keeps one subscriber counted in the `crossview_subscribers` gauge while alive.
+#[derive(Debug)]
+pub struct SubscriberGuard {
+    count: Arc<AtomicUsize>,
+    metrics: Metrics,
+    scene: String,
+}
+
+impl Drop for SubscriberGuard {
+    fn drop(&mut self) {
+        let n = self.count.fetch_sub(1, Ordering::AcqRel).saturating_sub(1);
+        self.metrics.subscribers(&self.scene, n);
     }
 }
 

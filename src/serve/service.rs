@@ -109,10 +109,15 @@ impl Service {
     /// The results of `scene` from now on.
     pub fn subscribe(&self, scene: &str) -> Result<ResultStream> {
         let s = self.scene(scene)?;
-        let rx = self.track(s.subscribe())?;
+        let (rx, guard) = self.track(s.subscribe())?;
         let metrics = self.metrics.clone();
         let mut failed = false;
         let stream = BroadcastStream::new(rx)
+            .map(move |item| {
+                // The stream owns the guard: the subscriber is counted while it lives.
+                let _ = &guard;
+                item
+            })
             .map(move |item| match item {
                 Ok(r) => Ok(r),
                 Err(BroadcastStreamRecvError::Lagged(n)) => {

@@ -10,6 +10,8 @@ import os
 import queue
 import sys
 import threading
+import time
+import urllib.request
 
 from grpc_tools import protoc
 
@@ -34,14 +36,18 @@ stub = rpc.AssociationStub(channel)
 scenes = [s.name for s in stub.ListScenes(pb.ListScenesRequest(), timeout=30).scenes]
 
 results = queue.Queue()
-subscribed = threading.Event()
+
+
+def subscribed():
+    """True once the server counts our subscriber (its /metrics gauge; HTTP on the same port)."""
+    with urllib.request.urlopen(f"http://{addr}/metrics", timeout=10) as resp:
+        text = resp.read().decode()
+    return any(line.startswith('crossview_subscribers{scene="lab"} ') and float(line.split()[-1]) >= 1
+               for line in text.splitlines())
 
 
 def subscribe():
     call = stub.Subscribe(pb.SubscribeRequest(scene="lab"), timeout=60)
-    # Server-streaming calls start on the first read; metadata arrives once it is registered.
-    call.initial_metadata()
-    subscribed.set()
     for r in call:
         results.put(r)
         if results.qsize() >= 3:
@@ -51,7 +57,13 @@ def subscribe():
 
 t = threading.Thread(target=subscribe, daemon=True)
 t.start()
-subscribed.wait(30)
+# grpcio gives no reliable "stream is open" signal before the first message, so wait until the
+# server reports the subscription, rather than racing it.
+deadline = time.time() + 30
+while not subscribed():
+    if time.time() > deadline:
+        sys.exit("the subscription never showed up in /metrics")
+    time.sleep(0.02)
 
 
 def det(x):
