@@ -9,7 +9,10 @@ use crossview::model::{Encoder, OnnxEncoder};
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    anyhow::ensure!(args.len() >= 2, "usage: embed_time RECORDING.jsonl MODEL.onnx...");
+    anyhow::ensure!(
+        args.len() >= 2,
+        "usage: embed_time RECORDING.jsonl MODEL.onnx..."
+    );
     let rec = read_recording(&args[0])?;
     let frames: Vec<(Vec<[f32; 4]>, Vec<i64>)> = rec
         .frames

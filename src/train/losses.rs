@@ -492,7 +492,10 @@ mod tests {
             most_confident(pairs.clone(), ea.view(), eb.view(), 0.5),
             vec![(1, 1), (2, 2)]
         );
-        assert_eq!(most_confident(pairs.clone(), ea.view(), eb.view(), 1.0), pairs);
+        assert_eq!(
+            most_confident(pairs.clone(), ea.view(), eb.view(), 1.0),
+            pairs
+        );
         assert_eq!(
             most_confident(pairs.clone(), ea.view(), eb.view(), 0.01),
             vec![(2, 2)]

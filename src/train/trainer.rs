@@ -102,7 +102,10 @@ impl TrainConfig {
             ));
         }
         if !(self.pair_fraction > 0.0 && self.pair_fraction <= 1.0) {
-            return Err(Error::invalid("train.pair_fraction", "must be within (0, 1]"));
+            return Err(Error::invalid(
+                "train.pair_fraction",
+                "must be within (0, 1]",
+            ));
         }
         if !(0.0..=1.0).contains(&self.lr_drop_at) {
             return Err(Error::invalid("train.lr_drop_at", "must be within [0, 1]"));
