@@ -37,7 +37,7 @@ fn main() -> anyhow::Result<()> {
         for (b, c) in &frames {
             enc.embed(b, c)?; // warm-up
         }
-        let reps = 20;
+        let reps = 5;
         let t = Instant::now();
         for _ in 0..reps {
             for (b, c) in &frames {
