@@ -2,7 +2,8 @@
 //! the 21 pairwise matchings, the global-identity step, and the whole `associate_frame`.
 use std::hint::black_box;
 
-use criterion::{BatchSize, Criterion, criterion_group, criterion_main};
+use criterion::measurement::{Measurement, ValueFormatter, WallTime};
+use criterion::{BatchSize, Criterion, Throughput, criterion_group, criterion_main};
 use crossview::core::association::{AssociationConfig, Mode, ViewPair, associate_frame};
 use crossview::core::identity::build_identities;
 use crossview::core::matching::{
@@ -63,12 +64,77 @@ fn pairwise(embs: &[Option<Array2<f32>>], cfg: &AssociationConfig) -> Vec<ViewPa
     pairs
 }
 
-fn bench(c: &mut Criterion) {
+/// On-CPU time of the calling thread, in ns, from `/proc/thread-self/schedstat` (Linux): time
+/// spent preempted by other processes does not count, which keeps numbers usable on a
+/// machine shared with other builds (cache interference still counts).
+struct OnCpu;
+
+fn on_cpu_ns() -> u64 {
+    std::fs::read_to_string("/proc/thread-self/schedstat")
+        .ok()
+        .and_then(|s| s.split_whitespace().next()?.parse().ok())
+        .unwrap_or(0)
+}
+
+struct NsFormatter;
+
+impl ValueFormatter for NsFormatter {
+    fn scale_values(&self, ns: f64, values: &mut [f64]) -> &'static str {
+        let (factor, unit) = if ns < 1e3 {
+            (1.0, "ns")
+        } else if ns < 1e6 {
+            (1e-3, "µs")
+        } else {
+            (1e-6, "ms")
+        };
+        values.iter_mut().for_each(|v| *v *= factor);
+        unit
+    }
+    fn scale_throughputs(&self, _: f64, _: &Throughput, _: &mut [f64]) -> &'static str {
+        "ns"
+    }
+    fn scale_for_machines(&self, _: &mut [f64]) -> &'static str {
+        "ns"
+    }
+}
+
+impl Measurement for OnCpu {
+    type Intermediate = u64;
+    type Value = u64;
+    fn start(&self) -> u64 {
+        on_cpu_ns()
+    }
+    fn end(&self, start: u64) -> u64 {
+        on_cpu_ns().saturating_sub(start)
+    }
+    fn add(&self, a: &u64, b: &u64) -> u64 {
+        a + b
+    }
+    fn zero(&self) -> u64 {
+        0
+    }
+    fn to_f64(&self, v: &u64) -> f64 {
+        *v as f64
+    }
+    fn formatter(&self) -> &dyn ValueFormatter {
+        &NsFormatter
+    }
+}
+
+fn bench_wall(c: &mut Criterion<WallTime>) {
+    bench(c, "wildtrack_frame_7x35x768");
+}
+
+fn bench_on_cpu(c: &mut Criterion<OnCpu>) {
+    bench(c, "wildtrack_frame_7x35x768_oncpu");
+}
+
+fn bench<M: Measurement>(c: &mut Criterion<M>, group: &str) {
     let (frame, embs) = frame_embeddings();
     let cfg = AssociationConfig::default();
     let sizes = vec![BOXES; CAMERAS];
     let pairs = pairwise(&embs, &cfg);
-    let mut g = c.benchmark_group("wildtrack_frame_7x35x768");
+    let mut g = c.benchmark_group(group);
     g.bench_function("pairwise_21_matchings", |b| {
         b.iter(|| black_box(pairwise(black_box(&embs), &cfg)))
     });
@@ -119,5 +185,10 @@ fn bench(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench);
-criterion_main!(benches);
+criterion_group!(wall, bench_wall);
+criterion_group! {
+    name = on_cpu;
+    config = Criterion::default().with_measurement(OnCpu);
+    targets = bench_on_cpu
+}
+criterion_main!(wall, on_cpu);

@@ -106,6 +106,13 @@ fn check_threshold(t: f32) -> anyhow::Result<f32> {
     Ok(t)
 }
 
+fn check_alpha(a: f32) -> anyhow::Result<f32> {
+    if !(0.0..=1.0).contains(&a) {
+        bail!("--alpha must be within [0, 1], got {a}");
+    }
+    Ok(a)
+}
+
 fn label(mode: Mode, threshold: f32) -> String {
     format!("{mode} t={threshold:.2}")
 }
@@ -143,7 +150,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let recording = read_recording(data)?;
     check_scene(&recording.scene, &meta)?;
     let threshold = check_threshold(args.threshold.unwrap_or(meta.threshold))?;
-    let alpha = args.alpha.unwrap_or(meta.alpha);
+    let alpha = check_alpha(args.alpha.unwrap_or(meta.alpha))?;
     let mut modes = vec![args.mode];
     if args.compare_modes {
         modes.push(match args.mode {
@@ -231,7 +238,7 @@ pub fn run_associate(args: AssociateArgs) -> anyhow::Result<()> {
     check_scene(scene, &meta)?;
     let cfg = AssociationConfig {
         threshold: check_threshold(args.threshold.unwrap_or(meta.threshold))?,
-        alpha: args.alpha.unwrap_or(meta.alpha),
+        alpha: check_alpha(args.alpha.unwrap_or(meta.alpha))?,
         mode: args.mode,
     };
     let file = std::fs::File::create(&args.out)

@@ -19,9 +19,11 @@
 //! agree on (transitivity repair). With two cameras the scheme reduces to greedy
 //! best-first one-to-one matching above the threshold.
 //!
-//! Cost: with N boxes, O(N²) set-up plus O(N) per merge in the common case (a per-cluster
-//! best-partner cache is refreshed only for clusters whose partner changed), well under a
-//! millisecond for a WILDTRACK frame (7 × 35 boxes).
+//! A pair of clusters is a candidate only when some member pair scores `S >= threshold`
+//! (an average cannot reach the threshold otherwise), so with a sensible threshold each
+//! cluster has a handful of candidates. Per-cluster best/second-best caches are refreshed
+//! only for the neighbours of a merge. A WILDTRACK frame (7 × 35 boxes) takes about half a
+//! millisecond on a loaded 2-vCPU machine (BENCHMARKS.md).
 //!
 //! # Confidence
 //! A cluster of two or more boxes: the mean `S` over all its member pairs (its internal
