@@ -5,9 +5,9 @@ use clap::{Parser, Subcommand};
 pub mod eval;
 pub mod import;
 pub mod model;
-pub mod train;
 pub mod serve;
 pub mod simulate;
+pub mod train;
 
 /// Self-supervised multi-view person association: train, evaluate, serve.
 #[derive(Debug, Parser)]
