@@ -229,7 +229,13 @@ fn metadata(
     extra.insert("crossview.scene".into(), scene.to_string());
     extra.insert("crossview.training_data".into(), data_name.to_string());
     extra.insert("crossview.steps".into(), out.steps.to_string());
+    // `epochs`: the epoch the exported weights come from (the best validated one);
+    // `epochs_run` / `steps`: how long the run trained in total.
     extra.insert("crossview.epochs".into(), out.best_epoch.to_string());
+    extra.insert(
+        "crossview.epochs_run".into(),
+        out.history.last().map_or(0, |r| r.epoch).to_string(),
+    );
     extra.insert(
         "crossview.train_seconds".into(),
         format!("{:.0}", out.train_seconds),
