@@ -57,6 +57,10 @@ pub struct TrainArgs {
     /// Edge pairs per matching (0 = all unique unordered pairs).
     #[arg(long, default_value_t = 0)]
     pub max_edges: usize,
+    /// [ours] Fraction of each image pair's Hungarian pairs (the most confident) used by the
+    /// losses; 1.0 = the paper.
+    #[arg(long, default_value_t = 1.0)]
+    pub pair_fraction: f32,
     /// Inference threshold stored when no validation data is given.
     #[arg(long, default_value_t = 0.4)]
     pub threshold: f32,
@@ -118,6 +122,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         lr_drop_at: args.lr_drop_at,
         max_edges: args.max_edges,
         alpha: args.alpha,
+        pair_fraction: args.pair_fraction,
         seed: args.seed,
         val_every: args.val_every,
         max_train_seconds: args.max_train_seconds,
@@ -224,7 +229,13 @@ fn metadata(
     extra.insert("crossview.scene".into(), scene.to_string());
     extra.insert("crossview.training_data".into(), data_name.to_string());
     extra.insert("crossview.steps".into(), out.steps.to_string());
+    // `epochs`: the epoch the exported weights come from (the best validated one);
+    // `epochs_run` / `steps`: how long the run trained in total.
     extra.insert("crossview.epochs".into(), out.best_epoch.to_string());
+    extra.insert(
+        "crossview.epochs_run".into(),
+        out.history.last().map_or(0, |r| r.epoch).to_string(),
+    );
     extra.insert(
         "crossview.train_seconds".into(),
         format!("{:.0}", out.train_seconds),

@@ -23,6 +23,11 @@ pub struct LossOptions {
     pub max_edges: usize,
     /// Appearance weight when both images carry appearance vectors (SPEC §3).
     pub alpha: f32,
+    /// **[ours]** Fraction of each image pair's Hungarian pairs that enter the image distance
+    /// `H` and the edges: the most confident ones (smallest detached normalised distance).
+    /// 1.0 = SPEC §4 (all pairs). Lower values ignore forced matches between boxes that have
+    /// no counterpart (false detections, people seen by one camera only).
+    pub pair_fraction: f32,
 }
 
 impl Default for LossOptions {
@@ -30,6 +35,7 @@ impl Default for LossOptions {
         LossOptions {
             max_edges: 0,
             alpha: 0.1,
+            pair_fraction: 1.0,
         }
     }
 }
@@ -122,6 +128,29 @@ pub fn match_images(
     };
     let d = normalized_distance(&dg, da.as_ref(), alpha);
     hungarian(d.view())
+}
+
+/// Keeps the `fraction` most confident of `pairs` (smallest distance in `emb_a`/`emb_b`;
+/// at least one), in their original order. `fraction >= 1` keeps all.
+pub fn most_confident(
+    pairs: Vec<(usize, usize)>,
+    emb_a: ArrayView2<f32>,
+    emb_b: ArrayView2<f32>,
+    fraction: f32,
+) -> Vec<(usize, usize)> {
+    if fraction >= 1.0 || pairs.len() <= 1 {
+        return pairs;
+    }
+    let keep = ((pairs.len() as f32 * fraction).ceil() as usize).clamp(1, pairs.len());
+    let dist = |&(a, b): &(usize, usize)| -> f32 {
+        let d = &emb_a.row(a) - &emb_b.row(b);
+        d.dot(&d)
+    };
+    let mut order: Vec<usize> = (0..pairs.len()).collect();
+    order.sort_by(|&i, &j| dist(&pairs[i]).total_cmp(&dist(&pairs[j])));
+    let mut kept: Vec<usize> = order[..keep].to_vec();
+    kept.sort_unstable();
+    kept.into_iter().map(|i| pairs[i]).collect()
 }
 
 /// Pairs of embedding rows whose mean distance forms one side of a triplet hinge:
@@ -452,6 +481,25 @@ mod tests {
         assert!(close(g[1][0], 0.6) && close(g[1][1], 0.8), "{g:?}");
         // d/d row2 of -||r2 - r0|| = -(1, 0)
         assert!(close(g[2][0], -1.0) && close(g[2][1], 0.0), "{g:?}");
+    }
+
+    #[test]
+    fn most_confident_keeps_the_closest_pairs_in_order() {
+        let ea = array![[0.0f32], [10.0], [20.0], [30.0]];
+        let eb = array![[5.0f32], [10.5], [20.0], [31.0]];
+        let pairs = vec![(0, 0), (1, 1), (2, 2), (3, 3)];
+        assert_eq!(
+            most_confident(pairs.clone(), ea.view(), eb.view(), 0.5),
+            vec![(1, 1), (2, 2)]
+        );
+        assert_eq!(
+            most_confident(pairs.clone(), ea.view(), eb.view(), 1.0),
+            pairs
+        );
+        assert_eq!(
+            most_confident(pairs.clone(), ea.view(), eb.view(), 0.01),
+            vec![(2, 2)]
+        );
     }
 
     #[test]

@@ -41,6 +41,10 @@ pub struct TrainConfig {
     pub max_edges: usize,
     /// Appearance weight (used only when boxes carry appearance vectors).
     pub alpha: f32,
+    /// **[ours]** Fraction of the most confident Hungarian pairs used by the losses
+    /// (1.0 = SPEC §4).
+    #[serde(default = "one")]
+    pub pair_fraction: f32,
     /// Seed of initialisation and sampling.
     pub seed: u64,
     /// Validate every this many epochs (0 = only at the end); needs a validator.
@@ -65,6 +69,7 @@ impl Default for TrainConfig {
             lr_drop_at: 0.75,
             max_edges: 0,
             alpha: 0.1,
+            pair_fraction: 1.0,
             seed: 0,
             val_every: 0,
             max_train_seconds: None,
@@ -94,6 +99,12 @@ impl TrainConfig {
             return Err(Error::invalid(
                 "train.lr",
                 format!("must be > 0, got {}", self.lr),
+            ));
+        }
+        if !(self.pair_fraction > 0.0 && self.pair_fraction <= 1.0) {
+            return Err(Error::invalid(
+                "train.pair_fraction",
+                "must be within (0, 1]",
             ));
         }
         if !(0.0..=1.0).contains(&self.lr_drop_at) {
@@ -237,6 +248,7 @@ pub fn train(
     let opts = LossOptions {
         max_edges: cfg.max_edges,
         alpha: cfg.alpha,
+        pair_fraction: cfg.pair_fraction,
     };
     let bar = if progress {
         let b = ProgressBar::new(total_steps);
@@ -362,6 +374,10 @@ pub fn train(
         steps,
         train_seconds: st.train_seconds,
     })
+}
+
+fn one() -> f32 {
+    1.0
 }
 
 /// A per-epoch seed from the run seed (splitmix64 finaliser), so resumed runs draw the same
