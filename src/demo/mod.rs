@@ -79,7 +79,7 @@ pub struct DemoSummary {
 fn status_error(what: &str, s: tonic::Status) -> Error {
     let msg = format!("{what}: {}", s.message());
     match s.code() {
-        tonic::Code::InvalidArgument => Error::invalid(what, s.message()),
+        tonic::Code::InvalidArgument | tonic::Code::NotFound => Error::invalid(what, s.message()),
         tonic::Code::ResourceExhausted => Error::ResourceExhausted(msg),
         tonic::Code::Unauthenticated => Error::Unauthenticated(msg),
         code => Error::Unavailable(format!("{msg} ({code:?})")),
