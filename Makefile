@@ -3,7 +3,7 @@ SHELL := /bin/bash
 ORT_DYLIB_PATH ?= $(CURDIR)/.cache/onnxruntime/libonnxruntime.so.1.31.1
 export ORT_DYLIB_PATH
 
-.PHONY: setup build test lint fmt
+.PHONY: setup build test bench lint fmt
 
 ## setup: fetch the ONNX Runtime library from PyPI into .cache/ (once)
 setup:
@@ -15,6 +15,10 @@ build: setup
 ## test: the whole test suite (unit, property, integration, end-to-end)
 test: setup
 	cargo test --all-targets
+
+## bench: criterion benchmarks (encoder, association; see BENCHMARKS.md)
+bench: setup
+	cargo bench
 
 lint:
 	cargo fmt --check
