@@ -38,14 +38,18 @@ pub enum Error {
     #[error("ONNX Runtime: {0}")]
     Runtime(String),
     /// A batch arrived for a frame that was already emitted.
-    #[error("late batch: frame {frame_id} of scene '{scene}' was already emitted (camera '{camera}')")]
+    #[error(
+        "late batch: frame {frame_id} of scene '{scene}' was already emitted (camera '{camera}')"
+    )]
     LateBatch {
         scene: String,
         camera: String,
         frame_id: u64,
     },
     /// A second batch for the same camera and frame.
-    #[error("duplicate batch: camera '{camera}' already reported frame {frame_id} of scene '{scene}'")]
+    #[error(
+        "duplicate batch: camera '{camera}' already reported frame {frame_id} of scene '{scene}'"
+    )]
     DuplicateBatch {
         scene: String,
         camera: String,

@@ -2,20 +2,62 @@
 //! handler per subcommand. Kept thin: each handler calls into the library.
 use clap::{Parser, Subcommand};
 
+pub mod import;
+
 /// Self-supervised multi-view person association: train, evaluate, serve.
 #[derive(Debug, Parser)]
 #[command(name = "crossview", version, about)]
 pub struct Cli {
+    /// Log format: human-readable text or one JSON object per line.
+    #[arg(
+        long,
+        global = true,
+        value_enum,
+        env = "CROSSVIEW_LOG_FORMAT",
+        default_value = "text"
+    )]
+    pub log_format: LogFormat,
+
     #[command(subcommand)]
     pub command: Command,
 }
 
+/// How log lines are written (to stderr). The level filter comes from `RUST_LOG`
+/// (default `info`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum LogFormat {
+    Text,
+    Json,
+}
+
+/// Installs the global `tracing` subscriber.
+fn init_logging(format: LogFormat) {
+    use tracing_subscriber::EnvFilter;
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
+    let _ = match format {
+        LogFormat::Text => builder.try_init(),
+        LogFormat::Json => builder.json().try_init(),
+    };
+}
+
 /// Subcommands.
 #[derive(Debug, Subcommand)]
-pub enum Command {}
+pub enum Command {
+    /// Convert a dataset (WILDTRACK ground truth or detections) into a recording.
+    Import(import::ImportArgs),
+    /// Keep the train, val or test part of a recording (chronological split, SPEC §6).
+    Split(import::SplitArgs),
+}
 
 /// Entry point used by `main`.
 pub fn run() -> anyhow::Result<()> {
     let cli = Cli::parse();
-    match cli.command {}
+    init_logging(cli.log_format);
+    match cli.command {
+        Command::Import(args) => import::run(args),
+        Command::Split(args) => import::run_split(args),
+    }
 }
