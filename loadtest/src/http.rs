@@ -164,8 +164,13 @@ pub async fn subscribe(
                 return;
             }
         };
-        for data in parser.feed(&chunk) {
+        for (event, data) in parser.feed(&chunk) {
             let now = Instant::now();
+            if event.as_deref().is_some_and(|e| e != "frame") {
+                tracing::warn!(event = ?event, data = %data, "non-frame event on the result stream");
+                tracker.error(&format!("subscribe_event_{}", event.unwrap_or_default()));
+                continue;
+            }
             match serde_json::from_str::<ResultHead>(&data) {
                 Ok(r) if r.scene.as_deref().is_none_or(|s| s == &*scene) => {
                     tracker.result((scene_idx, r.frame_id), r.complete, now)
@@ -178,16 +183,18 @@ pub async fn subscribe(
     tracker.error("subscribe_closed");
 }
 
-/// Incremental `text/event-stream` parser: yields the `data` of each complete event.
+/// Incremental `text/event-stream` parser: yields `(event name, data)` of each complete
+/// event (the server names results `frame` and failures `error`).
 #[derive(Default)]
 pub struct SseParser {
     buf: Vec<u8>,
+    event: Option<String>,
     data: Vec<String>,
 }
 
 impl SseParser {
-    /// Feeds bytes; returns the data payloads of the events completed by them.
-    pub fn feed(&mut self, bytes: &[u8]) -> Vec<String> {
+    /// Feeds bytes; returns the events completed by them.
+    pub fn feed(&mut self, bytes: &[u8]) -> Vec<(Option<String>, String)> {
         self.buf.extend_from_slice(bytes);
         let mut out = Vec::new();
         while let Some(nl) = self.buf.iter().position(|&b| b == b'\n') {
@@ -216,11 +223,14 @@ mod tests {
     #[test]
     fn sse_parser_handles_split_chunks_and_comments() {
         let mut p = SseParser::default();
-        assert!(p.feed(b": keep-alive\n\nevent: result\nda").is_empty());
+        assert!(p.feed(b": keep-alive\n\nevent: frame\nda").is_empty());
         let out = p.feed(b"ta: {\"frame_id\": 3}\r\n\r\ndata: a\ndata: b\n\n");
         assert_eq!(
             out,
-            vec!["{\"frame_id\": 3}".to_string(), "a\nb".to_string()]
+            vec![
+                (Some("frame".to_string()), "{\"frame_id\": 3}".to_string()),
+                (None, "a\nb".to_string())
+            ]
         );
     }
 
