@@ -22,3 +22,14 @@ lint:
 
 fmt:
 	cargo fmt
+
+.PHONY: loadtest smoke
+
+## loadtest: build the load generator (target/release/crossview-loadtest; see loadtest/README.md)
+loadtest:
+	cargo build --release -p crossview-loadtest
+
+## smoke: build the container images and run the compose stack end to end under podman
+## (slow, needs root; not part of CI; see deploy/README.md)
+smoke: setup
+	bash deploy/smoke.sh
