@@ -203,14 +203,17 @@ impl SseParser {
             let line = line.trim_end_matches(['\n', '\r']);
             if line.is_empty() {
                 if !self.data.is_empty() {
-                    out.push(self.data.join("\n"));
+                    out.push((self.event.take(), self.data.join("\n")));
                     self.data.clear();
                 }
+                self.event = None;
             } else if let Some(rest) = line.strip_prefix("data:") {
                 self.data
                     .push(rest.strip_prefix(' ').unwrap_or(rest).to_string());
+            } else if let Some(rest) = line.strip_prefix("event:") {
+                self.event = Some(rest.trim().to_string());
             }
-            // `event:`, `id:`, `retry:` and `:` comments carry nothing we need.
+            // `id:`, `retry:` and `:` comments carry nothing we need.
         }
         out
     }
