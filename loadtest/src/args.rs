@@ -77,6 +77,11 @@ pub struct Args {
     #[arg(long, default_value_t = 4096)]
     pub max_in_flight: usize,
 
+    /// Closed loop (--rate 0): frames per scene allowed to await their result before the
+    /// next frame is sent.
+    #[arg(long, default_value_t = 8)]
+    pub window: usize,
+
     /// After the last send, wait this long for outstanding results.
     #[arg(long, value_parser = parse_duration, default_value = "5s")]
     pub drain_timeout: Duration,
@@ -169,6 +174,7 @@ impl Args {
         anyhow::ensure!(self.scenes >= 1, "--scenes must be >= 1");
         anyhow::ensure!(self.connections >= 1, "--connections must be >= 1");
         anyhow::ensure!(self.max_in_flight >= 1, "--max-in-flight must be >= 1");
+        anyhow::ensure!(self.window >= 1, "--window must be >= 1");
         anyhow::ensure!(
             self.duration.is_some() || self.frames.is_some() || !self.repeat,
             "--loop needs --duration or --frames to stop"

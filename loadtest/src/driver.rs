@@ -68,6 +68,7 @@ impl Sender {
             match self.window.clone().try_acquire_owned() {
                 Ok(p) => p,
                 Err(_) => {
+                    // Never handed over, so neither sent nor in flight.
                     self.tracker.error("client_backlog");
                     return;
                 }
@@ -172,8 +173,14 @@ pub async fn run(args: &Args) -> anyhow::Result<Report> {
             let due = t0 + offset;
             tokio::time::sleep_until(due.into()).await;
             max_lag = max_lag.max(Instant::now().saturating_duration_since(due));
-        } else if args.duration.is_some_and(|d| t0.elapsed() >= d) {
-            break;
+        } else {
+            if args.duration.is_some_and(|d| t0.elapsed() >= d) {
+                break;
+            }
+            // Closed loop: at most `window` frames per scene awaiting their results.
+            tracker
+                .wait_in_flight_below(args.window * scenes.len())
+                .await;
         }
         if let Some(s) = soak.as_mut() {
             send_deferred(s, k, &slots, &scenes, &sender).await;
@@ -221,7 +228,7 @@ pub async fn run(args: &Args) -> anyhow::Result<Report> {
     // Drain: every batch answered and every accepted frame's result in, or the timeout.
     let drain_until = Instant::now() + args.drain_timeout;
     while Instant::now() < drain_until {
-        if sender.window.available_permits() == args.max_in_flight && tracker.outstanding() == 0 {
+        if sender.window.available_permits() == args.max_in_flight && tracker.in_flight() == 0 {
             break;
         }
         tokio::time::sleep(Duration::from_millis(20)).await;

@@ -68,8 +68,9 @@ impl GrpcSlot {
                 Err(s) => t.error(&status_kind(&s)),
             }
             // Whatever is still pending will never be answered.
-            for _ in lock(&p).drain(..) {
-                t.error("no_ack");
+            let unanswered: Vec<FrameKey> = lock(&p).drain(..).map(|(k, _, _)| k).collect();
+            for key in unanswered {
+                t.failed(key, "no_ack");
             }
         });
         Ok(GrpcSlot {
@@ -91,7 +92,7 @@ impl GrpcSlot {
             tracker.accepted(key);
         } else {
             let kind = rejection_kind(Some(&ack.kind), || format!("grpc_code_{}", ack.code));
-            tracker.rejected(&kind);
+            tracker.rejected(key, &kind);
         }
     }
 
@@ -103,7 +104,7 @@ impl GrpcSlot {
         if self.tx.send(msg).is_err() {
             q.pop_back();
             drop(q);
-            self.tracker.error("stream_closed");
+            self.tracker.failed(out.key, "stream_closed");
         }
     }
 }

@@ -54,7 +54,7 @@ impl HttpSlot {
         let body = match serde_json::to_vec(&out.batch) {
             Ok(b) => b,
             Err(_) => {
-                self.tracker.error("encode");
+                self.tracker.failed(out.key, "encode");
                 return;
             }
         };
@@ -76,9 +76,9 @@ impl HttpSlot {
                     let kind = rejection_kind(error_kind(&text).as_deref(), || {
                         format!("http_{}", status.as_u16())
                     });
-                    tracker.rejected(&kind);
+                    tracker.rejected(out.key, &kind);
                 }
-                Err(e) => tracker.error(reqwest_kind(&e)),
+                Err(e) => tracker.failed(out.key, reqwest_kind(&e)),
             }
         });
     }

@@ -2,9 +2,11 @@
 //! frames came back, push-to-result latency, and errors by kind.
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Mutex;
+
 use std::time::Instant;
 
 use hdrhistogram::Histogram;
+use tokio::sync::Notify;
 
 /// Identifies a frame of one scene: `(scene index, frame id)`.
 pub type FrameKey = (usize, u64);
@@ -13,20 +15,31 @@ pub type FrameKey = (usize, u64);
 struct FrameState {
     /// When the most recent batch of this frame was handed to the transport.
     last_send: Option<Instant>,
+    sent: u32,
+    /// Batches the server answered (accepted or rejected) or that failed client-side.
+    answered: u32,
     accepted: u32,
-    result: Option<ResultInfo>,
+    result: bool,
 }
 
-#[derive(Debug, Clone, Copy)]
-struct ResultInfo;
+impl FrameState {
+    /// Still waiting for something: an answer to a batch, or the result of an accepted frame.
+    fn in_flight(&self) -> bool {
+        !self.result && (self.accepted > 0 || self.answered < self.sent)
+    }
+}
 
 /// Counts and latencies of one run; cheap to share behind an `Arc`.
 pub struct Tracker {
     inner: Mutex<Inner>,
+    /// Woken whenever a frame stops being in flight.
+    progress: Notify,
 }
 
 struct Inner {
     frames: HashMap<FrameKey, FrameState>,
+    /// Frames for which `FrameState::in_flight` holds.
+    in_flight: usize,
     sent: u64,
     accepted: u64,
     rejected_by_kind: BTreeMap<String, u64>,
@@ -58,6 +71,7 @@ impl Tracker {
         Tracker {
             inner: Mutex::new(Inner {
                 frames: HashMap::new(),
+                in_flight: 0,
                 sent: 0,
                 accepted: 0,
                 rejected_by_kind: BTreeMap::new(),
@@ -71,6 +85,7 @@ impl Tracker {
                 first_send: None,
                 last_result: None,
             }),
+            progress: Notify::new(),
         }
     }
 
@@ -78,32 +93,62 @@ impl Tracker {
         self.inner.lock().unwrap_or_else(|p| p.into_inner())
     }
 
+    /// Applies `f` to the state of frame `key`, keeping the in-flight count right.
+    fn update<T>(&self, key: FrameKey, f: impl FnOnce(&mut Inner, &mut FrameState) -> T) -> T {
+        let mut g = self.lock();
+        let mut st = g.frames.remove(&key).unwrap_or_default();
+        let before = st.in_flight();
+        let out = f(&mut g, &mut st);
+        let after = st.in_flight();
+        g.frames.insert(key, st);
+        match (before, after) {
+            (false, true) => g.in_flight += 1,
+            (true, false) => {
+                g.in_flight -= 1;
+                drop(g);
+                self.progress.notify_waiters();
+            }
+            _ => {}
+        }
+        out
+    }
+
     /// A batch of `key` is about to be sent at `at`.
     pub fn sent(&self, key: FrameKey, at: Instant) {
-        let mut g = self.lock();
-        g.sent += 1;
-        g.first_send.get_or_insert(at);
-        let st = g.frames.entry(key).or_default();
-        st.last_send = Some(st.last_send.map_or(at, |t| t.max(at)));
+        self.update(key, |g, st| {
+            g.sent += 1;
+            g.first_send.get_or_insert(at);
+            st.sent += 1;
+            st.last_send = Some(st.last_send.map_or(at, |t| t.max(at)));
+        })
     }
 
     /// The server accepted a batch of `key`.
     pub fn accepted(&self, key: FrameKey) {
-        let mut g = self.lock();
-        g.accepted += 1;
-        g.frames.entry(key).or_default().accepted += 1;
+        self.update(key, |g, st| {
+            g.accepted += 1;
+            st.accepted += 1;
+            st.answered += 1;
+        })
     }
 
-    /// The server answered a batch with a rejection of kind `kind` (e.g. `late`, `duplicate`).
-    pub fn rejected(&self, kind: &str) {
-        *self
-            .lock()
-            .rejected_by_kind
-            .entry(kind.to_string())
-            .or_default() += 1;
+    /// The server rejected a batch of `key` with kind `kind` (e.g. `late`, `duplicate`).
+    pub fn rejected(&self, key: FrameKey, kind: &str) {
+        self.update(key, |g, st| {
+            *g.rejected_by_kind.entry(kind.to_string()).or_default() += 1;
+            st.answered += 1;
+        })
     }
 
-    /// A client-side or transport failure of kind `kind` (e.g. `timeout`, `connect`).
+    /// A batch of `key` failed client-side or in transport, with kind `kind` (e.g. `timeout`).
+    pub fn failed(&self, key: FrameKey, kind: &str) {
+        self.update(key, |g, st| {
+            *g.errors_by_kind.entry(kind.to_string()).or_default() += 1;
+            st.answered += 1;
+        })
+    }
+
+    /// A failure not tied to one batch, of kind `kind` (e.g. `subscribe_closed`).
     pub fn error(&self, kind: &str) {
         *self
             .lock()
@@ -114,38 +159,53 @@ impl Tracker {
 
     /// A frame result arrived at `at`.
     pub fn result(&self, key: FrameKey, complete: bool, at: Instant) {
-        let mut g = self.lock();
-        g.results += 1;
-        g.last_result = Some(at);
-        if complete {
-            g.results_complete += 1;
-        }
-        let Some(st) = g.frames.get_mut(&key) else {
-            g.unexpected_results += 1;
-            return;
+        let known = {
+            let mut g = self.lock();
+            g.results += 1;
+            g.last_result = Some(at);
+            if complete {
+                g.results_complete += 1;
+            }
+            if !g.frames.contains_key(&key) {
+                g.unexpected_results += 1;
+            }
+            g.frames.contains_key(&key)
         };
-        if st.result.is_some() {
-            g.duplicate_results += 1;
+        if !known {
             return;
         }
-        st.result = Some(ResultInfo);
-        let Some(sent) = st.last_send else { return };
-        let micros = at.saturating_duration_since(sent).as_micros().max(1) as u64;
-        let h = if complete {
-            &mut g.latency_complete
-        } else {
-            &mut g.latency_partial
-        };
-        h.saturating_record(micros);
+        self.update(key, |g, st| {
+            if st.result {
+                g.duplicate_results += 1;
+                return;
+            }
+            st.result = true;
+            let Some(sent) = st.last_send else { return };
+            let micros = at.saturating_duration_since(sent).as_micros().max(1) as u64;
+            let h = if complete {
+                &mut g.latency_complete
+            } else {
+                &mut g.latency_partial
+            };
+            h.saturating_record(micros);
+        })
     }
 
-    /// Frames with at least one accepted batch and no result yet.
-    pub fn outstanding(&self) -> usize {
-        self.lock()
-            .frames
-            .values()
-            .filter(|f| f.accepted > 0 && f.result.is_none())
-            .count()
+    /// Frames still waiting for a batch answer or, once accepted, for their result.
+    pub fn in_flight(&self) -> usize {
+        self.lock().in_flight
+    }
+
+    /// Waits until fewer than `limit` frames are in flight (closed-loop pacing). Re-checks
+    /// at least every 50 ms so a missed wake-up cannot stall the run.
+    pub async fn wait_in_flight_below(&self, limit: usize) {
+        loop {
+            let notified = self.progress.notified();
+            if self.in_flight() < limit {
+                return;
+            }
+            let _ = tokio::time::timeout(std::time::Duration::from_millis(50), notified).await;
+        }
     }
 
     /// A snapshot of everything counted so far.
@@ -155,7 +215,7 @@ impl Tracker {
             let mut v: Vec<FrameKey> = g
                 .frames
                 .iter()
-                .filter(|(_, f)| f.accepted > 0 && f.result.is_none())
+                .filter(|(_, f)| f.accepted > 0 && !f.result)
                 .map(|(k, _)| *k)
                 .collect();
             v.sort_unstable();
@@ -215,7 +275,9 @@ mod tests {
             t.accepted((0, f));
         }
         t.sent((0, 9), t0);
-        t.rejected("late");
+        assert_eq!(t.in_flight(), 4);
+        t.rejected((0, 9), "late");
+        assert_eq!(t.in_flight(), 3);
         t.result((0, 0), true, t0 + Duration::from_millis(5));
         t.result((0, 1), false, t0 + Duration::from_millis(300));
         t.result((0, 1), false, t0 + Duration::from_millis(301));
@@ -230,6 +292,10 @@ mod tests {
         let p50 = s.latency_complete.value_at_quantile(0.5);
         assert!((4_990..=5_010).contains(&p50), "{p50}");
         assert_eq!(s.latency_partial.len(), 1);
-        assert_eq!(t.outstanding(), 1);
+        assert_eq!(t.in_flight(), 1);
+        t.sent((0, 5), t0);
+        t.failed((0, 5), "timeout");
+        assert_eq!(t.in_flight(), 1);
+        assert_eq!(t.snapshot().errors_by_kind["timeout"], 1);
     }
 }
