@@ -14,6 +14,15 @@ pub enum Transport {
     Http,
 }
 
+/// How frame ids are chosen.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum FrameIds {
+    /// Shifted above every earlier run's ids.
+    Fresh,
+    /// As in the recording.
+    Original,
+}
+
 /// Replays a crossview recording against a running server at a fixed rate (open loop) or as
 /// fast as possible, matches every frame result to its pushes and reports throughput,
 /// push-to-result latency, errors and lost frames. Only loopback targets unless --allow-host.
@@ -67,6 +76,12 @@ pub struct Args {
     /// Stop after this many frames per scene.
     #[arg(long, env = "CROSSVIEW_LOADTEST_FRAMES")]
     pub frames: Option<u64>,
+
+    /// Frame ids on the wire: `fresh` shifts the recording's ids above any earlier run's
+    /// (by the current Unix time in ms x 1000), so the server never sees them as late;
+    /// `original` sends them unchanged (a fresh server only).
+    #[arg(long, value_enum, default_value = "fresh")]
+    pub frame_ids: FrameIds,
 
     /// Replay the recording again (with shifted frame ids) until --duration/--frames.
     #[arg(long = "loop")]

@@ -11,7 +11,7 @@ use rand_chacha::ChaCha8Rng;
 use tokio::sync::{Semaphore, oneshot};
 use tokio::task::JoinHandle;
 
-use crate::args::{Args, Transport};
+use crate::args::{Args, FrameIds, Transport};
 use crate::grpc::{self, GrpcSlot};
 use crate::http::{self, HttpSlot};
 use crate::promtext::{self, Sample};
@@ -154,6 +154,7 @@ pub async fn run(args: &Args) -> anyhow::Result<Report> {
     );
     let len = workload.frames.len() as u64;
     let span = workload.loop_span();
+    let base = frame_id_base(args.frame_ids);
     let t0 = Instant::now();
     let mut max_lag = Duration::ZERO;
     let mut k: u64 = 0;
@@ -190,7 +191,14 @@ pub async fn run(args: &Args) -> anyhow::Result<Report> {
             for (cam, batch) in &frame.batches {
                 let slot_idx = (si * ncam + cam) % nslots;
                 let mut batch = batch.clone();
-                batch.frame_id = frame.frame_id + pass * span;
+                batch.frame_id = match pass
+                    .checked_mul(span)
+                    .and_then(|o| o.checked_add(base))
+                    .and_then(|o| o.checked_add(frame.frame_id))
+                {
+                    Some(id) => id,
+                    None => anyhow::bail!("frame ids overflow u64 after {k} frames"),
+                };
                 let mut copies = 1;
                 if let Some(s) = soak.as_mut() {
                     match soak_decide(s, args, k, slot_idx, &mut slots, &tracker).await {
@@ -252,6 +260,20 @@ pub async fn run(args: &Args) -> anyhow::Result<Report> {
         metrics_before.zip(metrics_after),
         rss,
     ))
+}
+
+/// The offset added to every frame id: 0 for `original`, else the current Unix time in ms
+/// times 1000, which grows faster than any run can use ids.
+fn frame_id_base(mode: FrameIds) -> u64 {
+    match mode {
+        FrameIds::Original => 0,
+        FrameIds::Fresh => {
+            let ms = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_millis() as u64);
+            ms.saturating_mul(1000)
+        }
+    }
 }
 
 /// Opens one result subscription per scene and waits until all are open.
