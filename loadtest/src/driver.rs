@@ -163,7 +163,8 @@ pub async fn run(args: &Args) -> anyhow::Result<Report> {
             break;
         }
         let pass = k / len;
-        if pass > 0 && !args.repeat {
+        // Soak runs are bounded by --duration/--frames and always loop.
+        if pass > 0 && !(args.repeat || args.soak) {
             break;
         }
         if args.rate > 0.0 {
