@@ -16,6 +16,7 @@
 # Usage: bash deploy/smoke.sh            (as root; `make smoke`)
 # Env:   SMOKE_BUILD=source|prebuilt     SMOKE_PORT (18080)  SMOKE_PROM_PORT (19090)
 #        SMOKE_KEEP=1 (leave the stack running)   SMOKE_WORK (/var/tmp/crossview-smoke)
+#        SMOKE_NO_CARGO=1 (prebuilt: package target/release as it is)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 REPO=$PWD
@@ -30,8 +31,9 @@ RUST_IMAGE=${SMOKE_RUST_IMAGE:-docker.io/library/rust:1-bookworm}
 IMAGE=localhost/crossview:local
 PROM_IMAGE=localhost/crossview-prometheus:local
 ORT_LIB=.cache/onnxruntime/libonnxruntime.so.1.31.1
-SCENES=square4-0,square4-1
-FIRST_SCENE=square4-0
+# The replay service drives REPLAY_SCENES; the HTTP checks use HTTP_SCENE meanwhile.
+REPLAY_SCENES=square4-0,square4-1
+HTTP_SCENE=square4-2
 HTTP_FRAMES=5
 
 log() { printf '\n[smoke %s] %s\n' "$(date +%H:%M:%S)" "$*" >&2; }
@@ -116,9 +118,11 @@ build_images() {
       build crossview -f deploy/Dockerfile --build-arg "RUST_IMAGE=$RUST_IMAGE" -t "$IMAGE" .
       ;;
     prebuilt)
-      log "cargo build --release (host)"
-      cargo build --release --locked -p crossview -p crossview-loadtest --bins \
-        >"$WORK/logs/cargo-release.log" 2>&1 || fail "cargo build (see $WORK/logs/cargo-release.log)"
+      if [[ -z ${SMOKE_NO_CARGO:-} ]]; then
+        log "cargo build --release (host)"
+        cargo build --release --locked -p crossview -p crossview-loadtest --bins \
+          >"$WORK/logs/cargo-release.log" 2>&1 || fail "cargo build (see $WORK/logs/cargo-release.log)"
+      fi
       build crossview -f deploy/Dockerfile.prebuilt -t "$IMAGE" .
       ;;
     *) fail "SMOKE_BUILD must be source or prebuilt, got '$BUILD'" ;;
@@ -144,8 +148,8 @@ make_data() {
 # ---------------------------------------------------------------- 4. compose
 export CROSSVIEW_PORT=$PORT CROSSVIEW_PROMETHEUS_PORT=$PROM_PORT
 export CROSSVIEW_MODELS_DIR=$WORK/run/models CROSSVIEW_REPLAY_DIR=$WORK/run/data
-export CROSSVIEW_MODELS="square4-0=/models/square4.onnx,square4-1=/models/square4.onnx"
-export CROSSVIEW_REPLAY_SCENES=$SCENES CROSSVIEW_REPLAY_FRAMES=100 CROSSVIEW_REPLAY_RATE=20
+export CROSSVIEW_MODELS="square4-0=/models/square4.onnx,square4-1=/models/square4.onnx,square4-2=/models/square4.onnx"
+export CROSSVIEW_REPLAY_SCENES=$REPLAY_SCENES CROSSVIEW_REPLAY_FRAMES=100 CROSSVIEW_REPLAY_RATE=20
 export CROSSVIEW_REPLAY_TRANSPORT=grpc
 
 teardown() {
@@ -208,8 +212,8 @@ metric() { # metric NAME SCENE -> value (0 when absent)
 http_traffic() {
   log "HTTP: SSE subscription + batches of every camera for $HTTP_FRAMES frames"
   local before sse=$WORK/logs/sse.log frames posted=0 code
-  before=$(metric crossview_batches_total "$FIRST_SCENE")
-  curl -sN -m 60 "http://127.0.0.1:$PORT/v1/scenes/$FIRST_SCENE/events" >"$sse" 2>/dev/null &
+  before=$(metric crossview_batches_total "$HTTP_SCENE")
+  curl -sN -m 60 "http://127.0.0.1:$PORT/v1/scenes/$HTTP_SCENE/events" >"$sse" 2>/dev/null &
   SSE_PID=$!
   sleep 1
   # Frame ids far above the replay client's, so the two never collide.
@@ -232,7 +236,7 @@ PY
 )
   for f in "$WORK"/run/http/*.json; do
     code=$(curl -s -o "$WORK/logs/post.out" -w '%{http_code}' -m 10 -H 'content-type: application/json' \
-      --data-binary "@$f" "http://127.0.0.1:$PORT/v1/scenes/$FIRST_SCENE/batches")
+      --data-binary "@$f" "http://127.0.0.1:$PORT/v1/scenes/$HTTP_SCENE/batches")
     [[ $code == 202 || $code == 200 ]] || { cat "$WORK/logs/post.out" >&2; fail "POST batch -> HTTP $code"; }
     posted=$((posted + 1))
   done
@@ -249,13 +253,13 @@ PY
   grep -q '^event: frame' "$sse" || fail "SSE events are not named 'frame'"
   kill "$SSE_PID" 2>/dev/null || true; SSE_PID=
   pass "every posted frame came back as an SSE 'frame' event with identities"
-  local after; after=$(metric crossview_batches_total "$FIRST_SCENE")
+  local after; after=$(metric crossview_batches_total "$HTTP_SCENE")
   [[ $((after - before)) -ge $posted ]] || fail "crossview_batches_total moved by $((after - before)), posted $posted"
-  pass "/metrics crossview_batches_total{scene=$FIRST_SCENE} moved $before -> $after"
+  pass "/metrics crossview_batches_total{scene=$HTTP_SCENE} moved $before -> $after"
 }
 
 replay_report() {
-  log "waiting for the replay client (gRPC, $SCENES) to finish"
+  log "waiting for the replay client (gRPC, $REPLAY_SCENES) to finish"
   local c=${PROJECT}_replay_1 rc
   rc=$(timeout 180 podman wait "$c") || fail "replay client did not finish"
   podman logs "$c" >"$WORK/logs/replay.json" 2>"$WORK/logs/replay.stderr" || true
@@ -279,7 +283,7 @@ loadtest_http() {
   log "HTTP load test from a second container through the published port"
   podman run --rm --network=host -v "$WORK/run/data:/data:ro" --entrypoint crossview-loadtest "$IMAGE" \
     --target "http://127.0.0.1:$PORT" --recording /data/replay.jsonl --transport http \
-    --scene-names "$SCENES" --rate 20 --frames 60 --connections 2 --json \
+    --scene-names "$HTTP_SCENE,${REPLAY_SCENES%%,*}" --rate 20 --frames 60 --connections 2 --json \
     >"$WORK/logs/loadtest-http.json" 2>"$WORK/logs/loadtest-http.stderr" \
     || { cat "$WORK/logs/loadtest-http.json" "$WORK/logs/loadtest-http.stderr" >&2; fail "HTTP load test"; }
   python3 - "$WORK/logs/loadtest-http.json" <<'PY' || fail "HTTP load test report"
