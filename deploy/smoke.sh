@@ -251,6 +251,7 @@ PY
     grep -q "\"frame_id\":$id[,}]" "$sse" || { head -c 2000 "$sse" >&2; fail "frame $id never came back on SSE"; }
   done
   grep -q '^event: frame' "$sse" || fail "SSE events are not named 'frame'"
+  grep -q '"identities":\[{' "$sse" || fail "no SSE frame result carries an identity"
   kill "$SSE_PID" 2>/dev/null || true; SSE_PID=
   pass "every posted frame came back as an SSE 'frame' event with identities"
   local after; after=$(metric crossview_batches_total "$HTTP_SCENE")
