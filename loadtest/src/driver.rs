@@ -421,7 +421,9 @@ fn build_report(
     for c in server_comparison.iter().filter(|c| !c.matches) {
         failures.push(format!(
             "{}: ours {} vs server {}",
-            c.metric, c.ours, c.server
+            c.metric,
+            c.ours,
+            c.server.unwrap_or(0)
         ));
     }
     let secs = send_elapsed.as_secs_f64().max(1e-9);
@@ -484,14 +486,17 @@ fn compare(
     out.push(("crossview_late_batches_total", late));
     out.push(("crossview_duplicate_batches_total", dup));
     out.into_iter()
+        // A counter the server never exposed cannot be compared (it may not count that);
+        // a zero on both sides says nothing either.
         .filter(|(name, ours)| *ours > 0 || after.iter().any(|s| s.name == *name))
         .map(|(name, ours)| {
-            let server = delta(name);
+            let exposed = after.iter().any(|s| s.name == name);
+            let server = exposed.then(|| delta(name));
             Comparison {
                 metric: name.to_string(),
                 ours,
                 server,
-                matches: ours == server,
+                matches: server.is_none_or(|v| v == ours),
             }
         })
         .collect()

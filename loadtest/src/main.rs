@@ -13,6 +13,9 @@ mod target;
 mod tracker;
 mod transport;
 
+#[cfg(test)]
+mod tests;
+
 use clap::Parser;
 
 fn main() -> anyhow::Result<()> {

@@ -44,7 +44,9 @@ impl Latency {
 pub struct Comparison {
     pub metric: String,
     pub ours: u64,
-    pub server: u64,
+    /// The server's counter delta; `None` when the server does not expose the counter.
+    pub server: Option<u64>,
+    /// Equal, or not comparable (`server` is `None`).
     pub matches: bool,
 }
 
@@ -177,8 +179,12 @@ impl Report {
                 "  server    {:<36} ours={:<8} server={:<8} {}",
                 c.metric,
                 c.ours,
-                c.server,
-                if c.matches { "ok" } else { "MISMATCH" }
+                c.server.map_or("n/a".to_string(), |v| v.to_string()),
+                match (c.server, c.matches) {
+                    (None, _) => "not exposed",
+                    (Some(_), true) => "ok",
+                    (Some(_), false) => "MISMATCH",
+                }
             );
         }
         if let Some(r) = &self.server_rss {
