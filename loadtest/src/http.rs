@@ -115,11 +115,10 @@ struct ResultHead {
     complete: bool,
 }
 
-/// Follows `GET /v1/scenes/{scene}/events` and records every frame result for scene index
-/// `scene_idx`. `ready` fires once the stream is open (response headers received).
+/// Follows `GET /v1/scenes/{scene}/events` (on its own HTTP/1.1 connection) and records
+/// every frame result for scene index `scene_idx`. `ready` fires once the stream is open (response headers received).
 pub async fn subscribe(
     base: String,
-    http1: bool,
     scene: Arc<str>,
     scene_idx: usize,
     tracker: Arc<Tracker>,
@@ -135,7 +134,6 @@ pub async fn subscribe(
             return;
         }
     };
-    let _ = http1; // SSE uses its own HTTP/1.1 connection either way.
     let url = format!("{}/v1/scenes/{}/events", base.trim_end_matches('/'), scene);
     let resp = match client
         .get(&url)
