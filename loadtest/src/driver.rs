@@ -289,14 +289,7 @@ async fn subscribe_all(
         let (t, s) = (tracker.clone(), scene.clone());
         let h = match args.transport {
             Transport::Grpc => tokio::spawn(grpc::subscribe(args.target.clone(), s, i, t, tx)),
-            Transport::Http => tokio::spawn(http::subscribe(
-                args.target.clone(),
-                args.http1,
-                s,
-                i,
-                t,
-                tx,
-            )),
+            Transport::Http => tokio::spawn(http::subscribe(args.target.clone(), s, i, t, tx)),
         };
         rx.await
             .context("subscriber ended before opening")?
