@@ -110,6 +110,9 @@ pub async fn run(args: &Args) -> anyhow::Result<Report> {
         .into_iter()
         .map(Arc::from)
         .collect();
+    for scene in &scenes {
+        target::check_scene(&args.target, scene, &workload.scene).await?;
+    }
     let ncam = workload.scene.cameras.len();
     let tracker = Arc::new(Tracker::new());
     let metrics_before = promtext::scrape(&args.target).await.ok();

@@ -4,6 +4,7 @@ use std::net::IpAddr;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
+use crossview::core::SceneSpec;
 
 /// Checks that `url` (http://HOST:PORT) points at a loopback address, unless HOST is in
 /// `allowed` (e.g. a compose service name on a private container network).
@@ -55,6 +56,49 @@ pub async fn wait_ready(base: &str, wait: Duration) -> anyhow::Result<()> {
         }
         tokio::time::sleep(Duration::from_millis(250)).await;
     }
+}
+
+/// Checks that the server serves `scene` with every camera of `recording` (same names and
+/// image sizes), so a mismatch fails at once with a clear message instead of as thousands
+/// of rejected batches.
+pub async fn check_scene(base: &str, scene: &str, recording: &SceneSpec) -> anyhow::Result<()> {
+    let client = reqwest::Client::builder()
+        .timeout(Duration::from_secs(5))
+        .build()?;
+    let url = format!("{}/v1/scenes/{scene}", base.trim_end_matches('/'));
+    let resp = client
+        .get(&url)
+        .send()
+        .await
+        .with_context(|| format!("GET {url}"))?;
+    if resp.status() == reqwest::StatusCode::NOT_FOUND {
+        bail!("the server does not serve scene '{scene}' (GET {url}: 404)");
+    }
+    let served: SceneSpec = resp
+        .error_for_status()
+        .with_context(|| format!("GET {url}"))?
+        .json()
+        .await
+        .with_context(|| format!("GET {url}: not a scene description"))?;
+    for cam in &recording.cameras {
+        match served.cameras.iter().find(|c| c.name == cam.name) {
+            Some(c) if c == cam => {}
+            Some(c) => bail!(
+                "scene '{scene}': camera '{}' is {}x{} on the server but {}x{} in the recording",
+                cam.name,
+                c.width,
+                c.height,
+                cam.width,
+                cam.height
+            ),
+            None => bail!(
+                "scene '{scene}' on the server has no camera '{}' (it has {:?})",
+                cam.name,
+                served.cameras.iter().map(|c| &c.name).collect::<Vec<_>>()
+            ),
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]

@@ -68,6 +68,14 @@ async fn events(State(f): State<Fake>, Path(scene): Path<String>) -> impl IntoRe
     Sse::new(stream)
 }
 
+async fn describe(Path(scene): Path<String>) -> Response {
+    if scene != "lab" {
+        return StatusCode::NOT_FOUND.into_response();
+    }
+    let body = r#"{"name": "lab", "cameras": [{"name": "a", "width": 640, "height": 480}, {"name": "b", "width": 640, "height": 480}], "threshold": 0.4}"#;
+    ([("content-type", "application/json")], body).into_response()
+}
+
 async fn metrics(State(f): State<Fake>) -> String {
     f.batches
         .lock()
@@ -92,6 +100,7 @@ async fn start(cameras: usize, swallow: &[u64]) -> String {
         .route("/v1/scenes/{scene}/events", get(events))
         .route("/metrics", get(metrics))
         .route("/readyz", get(|| async { "ready" }))
+        .route("/v1/scenes/{scene}", get(describe))
         .with_state(fake);
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = listener.local_addr().unwrap();
@@ -174,6 +183,19 @@ async fn swallowed_frames_are_reported_lost_and_fail_the_run() {
         vec![("lab".to_string(), 3), ("lab".to_string(), 7)]
     );
     assert_eq!(report.results, 8);
+}
+
+#[tokio::test]
+async fn unknown_scene_fails_before_sending() {
+    let base = start(2, &[]).await;
+    let rec = recording(2);
+    let err = driver::run(&args(&base, rec.path(), &["--scene-names=lab,nope"]))
+        .await
+        .unwrap_err();
+    assert!(
+        format!("{err:#}").contains("does not serve scene 'nope'"),
+        "{err:#}"
+    );
 }
 
 #[tokio::test]
