@@ -30,7 +30,15 @@ fn main() -> anyhow::Result<()> {
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?;
-    let report = runtime.block_on(driver::run(&args))?;
+    let report = match runtime.block_on(driver::run(&args)) {
+        Ok(r) => r,
+        Err(e) => {
+            // Could not run at all (bad options, unreachable server, unknown scene): exit 2,
+            // distinct from a run whose verdict failed (1).
+            eprintln!("crossview-loadtest: {e:#}");
+            std::process::exit(2);
+        }
+    };
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
