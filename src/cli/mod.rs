@@ -3,6 +3,7 @@
 use clap::{Parser, Subcommand};
 
 pub mod import;
+pub mod model;
 
 /// Self-supervised multi-view person association: train, evaluate, serve.
 #[derive(Debug, Parser)]
@@ -50,6 +51,8 @@ pub enum Command {
     Import(import::ImportArgs),
     /// Keep the train, val or test part of a recording (chronological split, SPEC §6).
     Split(import::SplitArgs),
+    /// Model file tools: create a random encoder, inspect a file.
+    Model(model::ModelArgs),
 }
 
 /// Entry point used by `main`.
@@ -59,5 +62,6 @@ pub fn run() -> anyhow::Result<()> {
     match cli.command {
         Command::Import(args) => import::run(args),
         Command::Split(args) => import::run_split(args),
+        Command::Model(args) => model::run(args),
     }
 }

@@ -1,12 +1,17 @@
 //! The encoder file contract (SPEC §8): plain-Rust weights, ONNX export, metadata, and the
 //! ONNX Runtime encoder used for inference.
 
+pub mod export;
 pub mod metadata;
+pub mod onnx;
+pub mod runtime;
 pub mod weights;
 
 use ndarray::Array2;
 
+pub use export::{read_weights, read_weights_from_bytes, to_onnx_bytes, write_onnx};
 pub use metadata::ModelMetadata;
+pub use runtime::{EncoderOptions, OnnxEncoder};
 pub use weights::{EncoderConfig, EncoderWeights, Linear};
 
 /// Anything that turns normalised boxes into geometric embeddings (SPEC §2).

@@ -1,0 +1,202 @@
+//! `crossview model`: create a random encoder file for a scene (`init`) and inspect a model
+//! file (`info`).
+use std::path::PathBuf;
+
+use clap::{Args, Subcommand};
+
+use crate::core::SceneSpec;
+use crate::io::recording::RecordingReader;
+use crate::model::metadata::KEY_SCENE;
+use crate::model::onnx::DimensionValue;
+use crate::model::{
+    EncoderConfig, EncoderWeights, ModelMetadata, OnnxEncoder, export, runtime, write_onnx,
+};
+
+/// Model file tools.
+#[derive(Debug, Args)]
+pub struct ModelArgs {
+    #[command(subcommand)]
+    pub command: ModelCommand,
+}
+
+/// `crossview model` subcommands.
+#[derive(Debug, Subcommand)]
+pub enum ModelCommand {
+    /// Write a randomly initialised encoder for a recording's scene.
+    Init(InitArgs),
+    /// Print a model file's metadata, width, inputs and outputs.
+    Info(InfoArgs),
+}
+
+/// Options of `crossview model init`.
+#[derive(Debug, Args)]
+pub struct InitArgs {
+    /// Recording (SPEC §7 JSONL) whose header line defines the scene's cameras.
+    #[arg(long)]
+    pub scene_from: PathBuf,
+    /// Output ONNX file.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Random seed.
+    #[arg(long, default_value_t = 0, env = "CROSSVIEW_SEED")]
+    pub seed: u64,
+    /// Embedding width G.
+    #[arg(long, default_value_t = 768)]
+    pub width: usize,
+    /// Number of Fourier features per corner.
+    #[arg(long, default_value_t = 128)]
+    pub fourier: usize,
+    /// Camera embedding width.
+    #[arg(long, default_value_t = 256)]
+    pub camera_dim: usize,
+    /// Number of residual blocks.
+    #[arg(long, default_value_t = 3)]
+    pub blocks: usize,
+    /// Inference confidence threshold stored in the file.
+    #[arg(long, default_value_t = 0.4)]
+    pub threshold: f32,
+    /// Appearance weight stored in the file.
+    #[arg(long, default_value_t = 0.1)]
+    pub alpha: f32,
+}
+
+/// Options of `crossview model info`.
+#[derive(Debug, Args)]
+pub struct InfoArgs {
+    /// ONNX model file.
+    pub model: PathBuf,
+}
+
+/// Runs `crossview model ...`.
+pub fn run(args: ModelArgs) -> anyhow::Result<()> {
+    match args.command {
+        ModelCommand::Init(a) => init(a),
+        ModelCommand::Info(a) => info(a),
+    }
+}
+
+/// Reads and validates only the header line (`{"scene": {...}}`) of a SPEC §7 recording.
+fn read_scene_header(path: &PathBuf) -> anyhow::Result<SceneSpec> {
+    Ok(RecordingReader::open(path)?.scene().clone())
+}
+
+fn init(a: InitArgs) -> anyhow::Result<()> {
+    let scene = read_scene_header(&a.scene_from)?;
+    let config = EncoderConfig {
+        fourier_features: a.fourier,
+        camera_dim: a.camera_dim,
+        width: a.width,
+        blocks: a.blocks,
+    };
+    let weights = EncoderWeights::random(scene.cameras.len(), config, a.seed)?;
+    let mut meta = ModelMetadata::new(scene.cameras.clone());
+    meta.threshold = a.threshold;
+    meta.alpha = a.alpha;
+    meta.extra.insert(KEY_SCENE.into(), scene.name.clone());
+    meta.extra
+        .insert("crossview.init_seed".into(), a.seed.to_string());
+    meta.extra
+        .insert("crossview.trained".into(), "false".into());
+    meta.validate(&a.out.display().to_string())?;
+    write_onnx(&a.out, &weights, &meta)?;
+    println!(
+        "wrote {} (scene '{}', {} cameras, width {}, {} blocks, seed {})",
+        a.out.display(),
+        scene.name,
+        scene.cameras.len(),
+        a.width,
+        a.blocks,
+        a.seed
+    );
+    Ok(())
+}
+
+fn info(a: InfoArgs) -> anyhow::Result<()> {
+    let name = a.model.display().to_string();
+    let bytes = export::read_model_file(&a.model)?;
+    let model = export::decode_model(&name, &bytes)?;
+    let meta = export::model_metadata(&name, &model)?;
+    let dim = runtime::check_contract(&model, meta.cameras.len())
+        .map_err(|reason| crate::Error::model(&name, reason))?;
+    let graph = model.graph.as_ref().expect("decode_model checks the graph");
+    println!("model:     {name}");
+    println!(
+        "producer:  {} {} (IR {}, opsets {})",
+        model.producer_name,
+        model.producer_version,
+        model.ir_version,
+        model
+            .opset_import
+            .iter()
+            .map(|o| format!(
+                "{}:{}",
+                if o.domain.is_empty() {
+                    "ai.onnx"
+                } else {
+                    &o.domain
+                },
+                o.version
+            ))
+            .collect::<Vec<_>>()
+            .join(",")
+    );
+    println!("width G:   {dim}");
+    println!("version:   {}", meta.version);
+    println!("threshold: {}", meta.threshold);
+    println!("alpha:     {}", meta.alpha);
+    println!("cameras:   {}", meta.cameras.len());
+    for (i, c) in meta.cameras.iter().enumerate() {
+        println!("  [{i}] {} {}x{}", c.name, c.width, c.height);
+    }
+    for (k, v) in &meta.extra {
+        println!("{k} = {v}");
+    }
+    let inits: std::collections::HashSet<&str> =
+        graph.initializer.iter().map(|t| t.name.as_str()).collect();
+    let describe = |v: &crate::model::onnx::ValueInfoProto| {
+        let t = v.r#type.as_ref().and_then(|t| t.tensor_type.as_ref());
+        let dims = t
+            .and_then(|t| t.shape.as_ref())
+            .map(|s| {
+                s.dim
+                    .iter()
+                    .map(|d| match &d.value {
+                        Some(DimensionValue::DimValue(n)) => n.to_string(),
+                        Some(DimensionValue::DimParam(p)) => p.clone(),
+                        None => "?".into(),
+                    })
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            })
+            .unwrap_or_default();
+        let ty = match t.map(|t| t.elem_type) {
+            Some(1) => "float32".to_string(),
+            Some(7) => "int64".to_string(),
+            other => format!("type {other:?}"),
+        };
+        format!("{} {ty} [{dims}]", v.name)
+    };
+    for v in graph
+        .input
+        .iter()
+        .filter(|v| !inits.contains(v.name.as_str()))
+    {
+        println!("input:     {}", describe(v));
+    }
+    for v in &graph.output {
+        println!("output:    {}", describe(v));
+    }
+    let params: usize = graph
+        .initializer
+        .iter()
+        .map(|t| t.dims.iter().product::<i64>().max(0) as usize)
+        .sum();
+    println!("nodes:     {}, parameters: {params}", graph.node.len());
+    // Also confirm ONNX Runtime accepts it.
+    let enc = OnnxEncoder::from_bytes(&name, &bytes)?;
+    println!(
+        "onnxruntime: loaded (dim {})",
+        crate::model::Encoder::dim(&enc)
+    );
+    Ok(())
+}
