@@ -1,22 +1,27 @@
 //! HTTP JSON transport: `POST /v1/scenes/{scene}/batches` per batch (never awaited by the
-//! driver) and results from the scene's server-sent event stream.
-use std::sync::Arc;
+//! driver; in order per camera) and results from the scene's server-sent event stream.
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use futures::StreamExt;
 use serde::Deserialize;
-use tokio::sync::oneshot;
+use tokio::sync::{mpsc, oneshot};
 
 use crate::tracker::Tracker;
 use crate::transport::{Outgoing, rejection_kind};
 
-/// One HTTP connection (HTTP/2 multiplexed unless `http1`).
-#[derive(Clone)]
+/// One HTTP connection (HTTP/2 multiplexed unless `http1`). Each camera of each scene gets
+/// its own sender queue: its batches are POSTed one after another, like a real camera client,
+/// because the server treats a batch for a frame older than one it already emitted as late,
+/// and concurrent requests of one camera could overtake each other. Queued batches count as
+/// in flight (their permits are held), so open-loop sending still never waits.
 pub struct HttpSlot {
     client: reqwest::Client,
     base: Arc<str>,
     tracker: Arc<Tracker>,
+    queues: Mutex<HashMap<(usize, String), mpsc::UnboundedSender<Outgoing>>>,
 }
 
 /// A client for `base` (e.g. `http://127.0.0.1:8080`).
@@ -45,42 +50,65 @@ impl HttpSlot {
             client: client(http1, timeout)?,
             base: base.trim_end_matches('/').into(),
             tracker,
+            queues: Mutex::default(),
         })
     }
 
-    /// Sends one batch in the background; the answer is recorded in the tracker.
+    /// Queues one batch on its camera's sender; the answer is recorded in the tracker.
     pub fn send(&self, out: Outgoing) {
-        let url = format!("{}/v1/scenes/{}/batches", self.base, out.scene);
+        let key = (out.key.0, out.batch.camera.clone());
+        let mut queues = self.queues.lock().unwrap_or_else(|e| e.into_inner());
+        let tx = queues.entry(key).or_insert_with(|| {
+            let (tx, rx) = mpsc::unbounded_channel();
+            tokio::spawn(camera_sender(
+                self.client.clone(),
+                self.base.clone(),
+                self.tracker.clone(),
+                rx,
+            ));
+            tx
+        });
+        if let Err(e) = tx.send(out) {
+            self.tracker.failed(e.0.key, "sender_gone");
+        }
+    }
+}
+
+/// POSTs one camera's batches in order, each after the previous one's answer.
+async fn camera_sender(
+    client: reqwest::Client,
+    base: Arc<str>,
+    tracker: Arc<Tracker>,
+    mut rx: mpsc::UnboundedReceiver<Outgoing>,
+) {
+    while let Some(out) = rx.recv().await {
+        let _permit = out.permit;
         let body = match serde_json::to_vec(&out.batch) {
             Ok(b) => b,
             Err(_) => {
-                self.tracker.failed(out.key, "encode");
-                return;
+                tracker.failed(out.key, "encode");
+                continue;
             }
         };
-        let client = self.client.clone();
-        let tracker = self.tracker.clone();
-        tokio::spawn(async move {
-            let _permit = out.permit;
-            let resp = client
-                .post(&url)
-                .header(reqwest::header::CONTENT_TYPE, "application/json")
-                .body(body)
-                .send()
-                .await;
-            match resp {
-                Ok(r) if r.status().is_success() => tracker.accepted(out.key),
-                Ok(r) => {
-                    let status = r.status();
-                    let text = r.text().await.unwrap_or_default();
-                    let kind = rejection_kind(error_kind(&text).as_deref(), || {
-                        format!("http_{}", status.as_u16())
-                    });
-                    tracker.rejected(out.key, &kind);
-                }
-                Err(e) => tracker.failed(out.key, reqwest_kind(&e)),
+        let url = format!("{base}/v1/scenes/{}/batches", out.scene);
+        let resp = client
+            .post(&url)
+            .header(reqwest::header::CONTENT_TYPE, "application/json")
+            .body(body)
+            .send()
+            .await;
+        match resp {
+            Ok(r) if r.status().is_success() => tracker.accepted(out.key),
+            Ok(r) => {
+                let status = r.status();
+                let text = r.text().await.unwrap_or_default();
+                let kind = rejection_kind(error_kind(&text).as_deref(), || {
+                    format!("http_{}", status.as_u16())
+                });
+                tracker.rejected(out.key, &kind);
             }
-        });
+            Err(e) => tracker.failed(out.key, reqwest_kind(&e)),
+        }
     }
 }
 
