@@ -245,12 +245,12 @@ PY
   pass "POSTed $posted batches (all cameras of frames $frames) -> 202"
   for _ in $(seq 1 50); do
     local missing=0
-    for id in $frames; do grep -q "\"frame_id\":$id[,}]" "$sse" || missing=$((missing + 1)); done
+    for id in $frames; do grep -q "\"frame_id\":${id}[,}]" "$sse" || missing=$((missing + 1)); done
     [[ $missing -eq 0 ]] && break
     sleep 0.2
   done
   for id in $frames; do
-    grep -q "\"frame_id\":$id[,}]" "$sse" || { head -c 2000 "$sse" >&2; fail "frame $id never came back on SSE"; }
+    grep -q "\"frame_id\":${id}[,}]" "$sse" || { head -c 2000 "$sse" >&2; fail "frame $id never came back on SSE"; }
   done
   grep -q '^event: frame' "$sse" || fail "SSE events are not named 'frame'"
   grep -q '"identities":\[{' "$sse" || fail "no SSE frame result carries an identity"
