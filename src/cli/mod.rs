@@ -2,6 +2,7 @@
 //! handler per subcommand. Kept thin: each handler calls into the library.
 use clap::{Parser, Subcommand};
 
+pub mod eval;
 pub mod import;
 pub mod model;
 
@@ -53,6 +54,10 @@ pub enum Command {
     Split(import::SplitArgs),
     /// Model file tools: create a random encoder, inspect a file.
     Model(model::ModelArgs),
+    /// SPEC §5 metrics of a model on a recording with ids (or recomputed from a pair dump).
+    Eval(eval::EvalArgs),
+    /// Global identities for every frame of a recording, one JSON line per frame.
+    Associate(eval::AssociateArgs),
 }
 
 /// Entry point used by `main`.
@@ -63,5 +68,7 @@ pub fn run() -> anyhow::Result<()> {
         Command::Import(args) => import::run(args),
         Command::Split(args) => import::run_split(args),
         Command::Model(args) => model::run(args),
+        Command::Eval(args) => eval::run(args),
+        Command::Associate(args) => eval::run_associate(args),
     }
 }

@@ -1,1 +1,14 @@
 //! Evaluation: the paper's metrics (SPEC §5) and the driver behind `crossview eval`.
+//!
+//! - [`metrics`]: per-image-pair records and the SPEC §5 metrics over them.
+//! - [`driver`]: run an encoder over a recording with ids and produce the records.
+//! - [`dump`]: the `--dump-pairs` JSON Lines file (write and read back).
+//! - [`report`]: the printed table and the JSON report.
+
+pub mod driver;
+pub mod dump;
+pub mod metrics;
+pub mod report;
+
+pub use driver::{EvalRun, evaluate, evaluate_settings};
+pub use metrics::{Metrics, PairRecord, compute_metrics};

@@ -1,0 +1,194 @@
+//! Association cost of one WILDTRACK-sized frame (7 cameras × 35 boxes, 768-dim embeddings):
+//! the 21 pairwise matchings, the global-identity step, and the whole `associate_frame`.
+use std::hint::black_box;
+
+use criterion::measurement::{Measurement, ValueFormatter, WallTime};
+use criterion::{BatchSize, Criterion, Throughput, criterion_group, criterion_main};
+use crossview::core::association::{AssociationConfig, Mode, ViewPair, associate_frame};
+use crossview::core::identity::build_identities;
+use crossview::core::matching::{
+    all_pairs_distances, euclidean_distances_with_norms, hungarian, match_from_distances,
+    row_sq_norms,
+};
+use crossview::core::{Detection, Frame};
+use ndarray::Array2;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+
+const CAMERAS: usize = 7;
+const BOXES: usize = 35;
+const DIM: usize = 768;
+
+/// Embeddings of 35 persons seen by every camera: a per-person vector plus per-view noise,
+/// rows shuffled per camera (so the matcher has real work to do).
+fn frame_embeddings() -> (Frame, Vec<Option<Array2<f32>>>) {
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let persons = Array2::from_shape_fn((BOXES, DIM), |_| rng.sample::<f32, _>(StandardNormal));
+    let mut frame = Frame::new(0, CAMERAS);
+    let mut embs = Vec::new();
+    for c in 0..CAMERAS {
+        let mut order: Vec<usize> = (0..BOXES).collect();
+        for i in (1..BOXES).rev() {
+            order.swap(i, rng.random_range(0..=i));
+        }
+        let e = Array2::from_shape_fn((BOXES, DIM), |(i, k)| {
+            persons[(order[i], k)] + 0.7 * rng.sample::<f32, _>(StandardNormal)
+        });
+        embs.push(Some(e));
+        frame.views[c] = Some(
+            (0..BOXES)
+                .map(|i| Detection::new([i as f32, 0.0, i as f32 + 10.0, 30.0]))
+                .collect(),
+        );
+    }
+    (frame, embs)
+}
+
+/// The production path of `associate_frame`'s pairwise step: block distances, then
+/// normalisation + Hungarian + threshold per pair.
+fn pairwise(embs: &[Option<Array2<f32>>], cfg: &AssociationConfig) -> Vec<ViewPair> {
+    let views: Vec<_> = embs.iter().flatten().map(|e| e.view()).collect();
+    let mut dists = all_pairs_distances(&views).into_iter();
+    let mut pairs = Vec::with_capacity(21);
+    for a in 0..views.len() {
+        for b in a + 1..views.len() {
+            let dg = dists.next().unwrap();
+            pairs.push(ViewPair {
+                cam_a: a,
+                cam_b: b,
+                matching: match_from_distances(dg, None, cfg.alpha, cfg.threshold),
+            });
+        }
+    }
+    pairs
+}
+
+/// On-CPU time of the calling thread, in ns, from `/proc/thread-self/schedstat` (Linux): time
+/// spent preempted by other processes does not count, which keeps numbers usable on a
+/// machine shared with other builds (cache interference still counts).
+struct OnCpu;
+
+fn on_cpu_ns() -> u64 {
+    std::fs::read_to_string("/proc/thread-self/schedstat")
+        .ok()
+        .and_then(|s| s.split_whitespace().next()?.parse().ok())
+        .unwrap_or(0)
+}
+
+struct NsFormatter;
+
+impl ValueFormatter for NsFormatter {
+    fn scale_values(&self, ns: f64, values: &mut [f64]) -> &'static str {
+        let (factor, unit) = if ns < 1e3 {
+            (1.0, "ns")
+        } else if ns < 1e6 {
+            (1e-3, "µs")
+        } else {
+            (1e-6, "ms")
+        };
+        values.iter_mut().for_each(|v| *v *= factor);
+        unit
+    }
+    fn scale_throughputs(&self, _: f64, _: &Throughput, _: &mut [f64]) -> &'static str {
+        "ns"
+    }
+    fn scale_for_machines(&self, _: &mut [f64]) -> &'static str {
+        "ns"
+    }
+}
+
+impl Measurement for OnCpu {
+    type Intermediate = u64;
+    type Value = u64;
+    fn start(&self) -> u64 {
+        on_cpu_ns()
+    }
+    fn end(&self, start: u64) -> u64 {
+        on_cpu_ns().saturating_sub(start)
+    }
+    fn add(&self, a: &u64, b: &u64) -> u64 {
+        a + b
+    }
+    fn zero(&self) -> u64 {
+        0
+    }
+    fn to_f64(&self, v: &u64) -> f64 {
+        *v as f64
+    }
+    fn formatter(&self) -> &dyn ValueFormatter {
+        &NsFormatter
+    }
+}
+
+fn bench_wall(c: &mut Criterion<WallTime>) {
+    bench(c, "wildtrack_frame_7x35x768");
+}
+
+fn bench_on_cpu(c: &mut Criterion<OnCpu>) {
+    bench(c, "wildtrack_frame_7x35x768_oncpu");
+}
+
+fn bench<M: Measurement>(c: &mut Criterion<M>, group: &str) {
+    let (frame, embs) = frame_embeddings();
+    let cfg = AssociationConfig::default();
+    let sizes = vec![BOXES; CAMERAS];
+    let pairs = pairwise(&embs, &cfg);
+    let mut g = c.benchmark_group(group);
+    g.bench_function("pairwise_21_matchings", |b| {
+        b.iter(|| black_box(pairwise(black_box(&embs), &cfg)))
+    });
+    let views: Vec<&Array2<f32>> = embs.iter().flatten().collect();
+    let norms: Vec<_> = views.iter().map(|e| row_sq_norms(e.view())).collect();
+    g.bench_function("distances_21_only", |b| {
+        b.iter(|| {
+            for a in 0..CAMERAS {
+                for c in a + 1..CAMERAS {
+                    black_box(euclidean_distances_with_norms(
+                        views[a].view(),
+                        views[c].view(),
+                        norms[a].view(),
+                        norms[c].view(),
+                    ));
+                }
+            }
+        })
+    });
+    let view_list: Vec<_> = views.iter().map(|v| v.view()).collect();
+    g.bench_function("distances_all_pairs_blocks", |b| {
+        b.iter(|| black_box(all_pairs_distances(black_box(&view_list))))
+    });
+    let costs: Vec<Array2<f32>> = pairs
+        .iter()
+        .map(|p| p.matching.scores.mapv(|v| 1.0 - v))
+        .collect();
+    g.bench_function("hungarian_21_only", |b| {
+        b.iter(|| {
+            for c in &costs {
+                black_box(hungarian(c.view()));
+            }
+        })
+    });
+    g.bench_function("identities", |b| {
+        b.iter(|| black_box(build_identities(&sizes, black_box(&pairs), cfg.threshold)))
+    });
+    for mode in [Mode::Pairwise, Mode::Global] {
+        let cfg = AssociationConfig { mode, ..cfg };
+        g.bench_function(format!("associate_frame_{mode}"), |b| {
+            b.iter_batched(
+                || embs.clone(),
+                |e| black_box(associate_frame(&frame, e, &cfg)),
+                BatchSize::SmallInput,
+            )
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(wall, bench_wall);
+criterion_group! {
+    name = on_cpu;
+    config = Criterion::default().with_measurement(OnCpu);
+    targets = bench_on_cpu
+}
+criterion_main!(wall, on_cpu);
