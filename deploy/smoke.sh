@@ -100,6 +100,7 @@ build_rust_standin() {
   [[ -d $HOME/.rustup/toolchains/$toolchain ]] || fail "no rustup toolchain $toolchain"
   rm -rf "$ctx" && mkdir -p "$ctx"
   cp deploy/rust-standin/Containerfile "$ctx/"
+  cp /etc/ssl/certs/ca-certificates.crt "$ctx/" || fail "no /etc/ssl/certs/ca-certificates.crt"
   printf 'version = "12"\ndefault_toolchain = "%s"\nprofile = "minimal"\nauto_self_update = "disable"\n' \
     "$toolchain" >"$ctx/settings.toml"
   # Docs are not needed to build; rustup proxies (cargo, rustc, ...) come from ~/.cargo/bin.
