@@ -3,6 +3,19 @@
 # project-local cache .cache/onnxruntime/ when it is absent. Idempotent; needs python3 + pip.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+
+# ---- serve: Python gRPC client environment (used by tests/serve_python_client.rs) ----------
+# A project-local virtualenv with grpcio + grpcio-tools, so an integration test can generate a
+# client from proto/crossview/v1/*.proto with a toolchain nobody here wrote. Idempotent. It runs
+# before the ONNX Runtime step because that step exits early once the library is present.
+VENV=.cache/venv
+if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import grpc, grpc_tools' 2>/dev/null; then
+  echo "setup: creating $VENV with grpcio + grpcio-tools" >&2
+  python3 -m venv "$VENV"
+  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check grpcio grpcio-tools
+fi
+# ---- end serve -------------------------------------------------------------------------------
+
 ORT_VERSION=1.31.1
 DEST=.cache/onnxruntime
 LIB="$DEST/libonnxruntime.so.$ORT_VERSION"

@@ -5,6 +5,9 @@ use clap::{Parser, Subcommand};
 pub mod eval;
 pub mod import;
 pub mod model;
+pub mod serve;
+pub mod simulate;
+pub mod train;
 
 /// Self-supervised multi-view person association: train, evaluate, serve.
 #[derive(Debug, Parser)]
@@ -48,6 +51,8 @@ fn init_logging(format: LogFormat) {
 /// Subcommands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    /// Serve association over gRPC and HTTP JSON (streaming, cross-camera synchronization).
+    Serve(serve::ServeArgs),
     /// Convert a dataset (WILDTRACK ground truth or detections) into a recording.
     Import(import::ImportArgs),
     /// Keep the train, val or test part of a recording (chronological split, SPEC §6).
@@ -58,6 +63,10 @@ pub enum Command {
     Eval(eval::EvalArgs),
     /// Global identities for every frame of a recording, one JSON line per frame.
     Associate(eval::AssociateArgs),
+    /// Train an encoder self-supervised on a recording and export it as ONNX.
+    Train(train::TrainArgs),
+    /// Generate a synthetic multi-camera recording (SPEC §7) with ground-truth ids.
+    Simulate(simulate::SimulateArgs),
 }
 
 /// Entry point used by `main`.
@@ -65,10 +74,13 @@ pub fn run() -> anyhow::Result<()> {
     let cli = Cli::parse();
     init_logging(cli.log_format);
     match cli.command {
+        Command::Serve(args) => serve::run(args),
         Command::Import(args) => import::run(args),
         Command::Split(args) => import::run_split(args),
         Command::Model(args) => model::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Associate(args) => eval::run_associate(args),
+        Command::Train(args) => train::run(args),
+        Command::Simulate(args) => simulate::run(args),
     }
 }

@@ -1,1 +1,20 @@
 //! Self-supervised training (SPEC §2–§4) with candle, exporting SPEC §8 ONNX files.
+//!
+//! - [`data`]: the recording as per-frame, per-camera normalised images.
+//! - [`sampler`]: anchor/positive/negative triplets.
+//! - [`model`]: the candle encoder + decoder, convertible to [`crate::model::EncoderWeights`].
+//! - [`losses`]: synchronization, re-projection and edge losses, batched over triplets.
+//! - [`adam`]: the optimiser, with checkpointable state.
+
+pub mod adam;
+pub mod checkpoint;
+pub mod curve;
+pub mod data;
+pub mod losses;
+pub mod model;
+pub mod sampler;
+pub mod trainer;
+pub mod validate;
+
+pub use data::TrainingSet;
+pub use model::TrainModel;

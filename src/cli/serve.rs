@@ -1,0 +1,169 @@
+//! `crossview serve`: flags (with `CROSSVIEW_*` environment fallbacks) → [`ServeConfig`], then [`crossview::serve::run`] until Ctrl-C / SIGTERM.
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::Args;
+
+use crate::serve::{Limits, ModelSpec, ServeConfig, TlsConfig};
+
+/// Serve association over gRPC and HTTP JSON on one port.
+#[derive(Debug, Args)]
+pub struct ServeArgs {
+    /// A model to serve, `[NAME=]path.onnx` (repeatable; the scene name defaults to the file
+    /// stem; cameras come from the model metadata).
+    #[arg(
+        long = "model",
+        env = "CROSSVIEW_MODELS",
+        value_delimiter = ',',
+        required = true
+    )]
+    pub models: Vec<String>,
+    /// Address to listen on (gRPC and HTTP share it).
+    #[arg(long, env = "CROSSVIEW_LISTEN", default_value = "0.0.0.0:8080")]
+    pub listen: String,
+    /// How long a frame waits for missing cameras before it is emitted as partial
+    /// (e.g. `200ms`, `1.5s`; a bare number is milliseconds).
+    #[arg(long, env = "CROSSVIEW_SYNC_TIMEOUT", default_value = "200ms", value_parser = parse_duration)]
+    pub sync_timeout: Duration,
+    /// Pending frames per scene beyond which the oldest is emitted as partial.
+    #[arg(long, env = "CROSSVIEW_MAX_PENDING_FRAMES", default_value_t = 64)]
+    pub max_pending_frames: usize,
+    /// Accepted bearer token (repeatable); with none (and no --api-key-file) auth is off.
+    #[arg(
+        long = "api-key",
+        env = "CROSSVIEW_API_KEYS",
+        value_delimiter = ',',
+        hide_env_values = true
+    )]
+    pub api_keys: Vec<String>,
+    /// File with one accepted bearer token per line (blank lines and `#` comments ignored).
+    #[arg(long, env = "CROSSVIEW_API_KEY_FILE")]
+    pub api_key_file: Option<PathBuf>,
+    /// TLS certificate chain (PEM); needs --tls-key.
+    #[arg(long, env = "CROSSVIEW_TLS_CERT", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// TLS private key (PEM); needs --tls-cert.
+    #[arg(long, env = "CROSSVIEW_TLS_KEY", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// Largest HTTP body / gRPC message in bytes.
+    #[arg(long, env = "CROSSVIEW_MAX_REQUEST_BYTES", default_value_t = Limits::default().max_request_bytes)]
+    pub max_request_bytes: usize,
+    /// Most cameras a served model may have.
+    #[arg(long, env = "CROSSVIEW_MAX_CAMERAS", default_value_t = Limits::default().max_cameras)]
+    pub max_cameras: usize,
+    /// Most detections in one camera batch.
+    #[arg(long, env = "CROSSVIEW_MAX_DETECTIONS", default_value_t = Limits::default().max_detections)]
+    pub max_detections: usize,
+    /// Longest appearance vector.
+    #[arg(long, env = "CROSSVIEW_MAX_APPEARANCE_LEN", default_value_t = Limits::default().max_appearance_len)]
+    pub max_appearance_len: usize,
+    /// Frames queued for inference per scene before work is shed (RESOURCE_EXHAUSTED / 429).
+    #[arg(long, env = "CROSSVIEW_QUEUE_CAPACITY", default_value_t = Limits::default().queue_capacity)]
+    pub queue_capacity: usize,
+    /// Frame results buffered per subscriber before a slow subscriber is dropped.
+    #[arg(long, env = "CROSSVIEW_SUBSCRIBER_BUFFER", default_value_t = Limits::default().subscriber_buffer)]
+    pub subscriber_buffer: usize,
+    /// How long shutdown waits for open connections after flushing.
+    #[arg(long, env = "CROSSVIEW_SHUTDOWN_GRACE", default_value = "10s", value_parser = parse_duration)]
+    pub shutdown_grace: Duration,
+}
+
+/// Parses `250ms`, `2s`, `1.5s`, `10m` or a bare number of milliseconds.
+pub fn parse_duration(s: &str) -> Result<Duration, String> {
+    let s = s.trim();
+    let (num, scale) = if let Some(v) = s.strip_suffix("ms") {
+        (v, 1e-3)
+    } else if let Some(v) = s.strip_suffix('s') {
+        (v, 1.0)
+    } else if let Some(v) = s.strip_suffix('m') {
+        (v, 60.0)
+    } else {
+        (s, 1e-3)
+    };
+    let v: f64 = num
+        .trim()
+        .parse()
+        .map_err(|_| format!("'{s}' is not a duration (e.g. 200ms, 1.5s)"))?;
+    if !v.is_finite() || v < 0.0 || v * scale > 86_400.0 {
+        return Err(format!("'{s}' is out of range"));
+    }
+    Ok(Duration::from_secs_f64(v * scale))
+}
+
+impl ServeArgs {
+    /// The library configuration these flags describe.
+    pub fn to_config(&self) -> anyhow::Result<ServeConfig> {
+        let models = self
+            .models
+            .iter()
+            .map(|m| ModelSpec::parse(m))
+            .collect::<crate::Result<Vec<_>>>()?;
+        let mut api_keys = self.api_keys.clone();
+        if let Some(p) = &self.api_key_file {
+            let text = std::fs::read_to_string(p)
+                .with_context(|| format!("reading API keys from {}", p.display()))?;
+            api_keys.extend(
+                text.lines()
+                    .map(str::trim)
+                    .filter(|l| !l.is_empty() && !l.starts_with('#'))
+                    .map(String::from),
+            );
+        }
+        let tls = match (&self.tls_cert, &self.tls_key) {
+            (Some(cert), Some(key)) => Some(TlsConfig {
+                cert: cert.clone(),
+                key: key.clone(),
+            }),
+            _ => None,
+        };
+        Ok(ServeConfig {
+            models,
+            sync_timeout: self.sync_timeout,
+            max_pending_frames: self.max_pending_frames,
+            api_keys,
+            tls,
+            limits: Limits {
+                max_request_bytes: self.max_request_bytes,
+                max_cameras: self.max_cameras,
+                max_detections: self.max_detections,
+                max_appearance_len: self.max_appearance_len,
+                queue_capacity: self.queue_capacity,
+                subscriber_buffer: self.subscriber_buffer,
+            },
+            shutdown_grace: self.shutdown_grace,
+        })
+    }
+}
+
+/// Runs the server until Ctrl-C or SIGTERM, then shuts down gracefully. Logs go through the
+/// global `--log-format text|json` subscriber.
+pub fn run(args: ServeArgs) -> anyhow::Result<()> {
+    let config = args.to_config()?;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    rt.block_on(async {
+        let listener = tokio::net::TcpListener::bind(&args.listen)
+            .await
+            .with_context(|| format!("binding {}", args.listen))?;
+        crate::serve::run(config, listener, crate::serve::shutdown_signal()).await?;
+        anyhow::Ok(())
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn durations_parse() {
+        assert_eq!(parse_duration("200ms"), Ok(Duration::from_millis(200)));
+        assert_eq!(parse_duration("1.5s"), Ok(Duration::from_millis(1500)));
+        assert_eq!(parse_duration("50"), Ok(Duration::from_millis(50)));
+        assert_eq!(parse_duration("2m"), Ok(Duration::from_secs(120)));
+        assert!(parse_duration("-1s").is_err());
+        assert!(parse_duration("soon").is_err());
+    }
+}

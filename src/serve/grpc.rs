@@ -1,0 +1,313 @@
+//! The gRPC transport (tonic): protobuf ⇄ domain conversions, the one `Error → Status` mapping,
+//! and a thin `Association` implementation over [`Service`].
+use std::pin::Pin;
+use std::sync::Arc;
+
+use futures::{Stream, StreamExt};
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::{Code, Request, Response, Status, Streaming};
+
+use super::api;
+use super::pb;
+use super::service::Service;
+use crate::Error;
+use crate::core::{Batch, Detection};
+
+impl From<Error> for Status {
+    fn from(e: Error) -> Self {
+        let code = match &e {
+            Error::InvalidArgument { .. } | Error::Format { .. } => Code::InvalidArgument,
+            Error::UnknownScene(_) | Error::UnknownCamera { .. } => Code::NotFound,
+            Error::LateBatch { .. } => Code::FailedPrecondition,
+            Error::DuplicateBatch { .. } => Code::AlreadyExists,
+            Error::ResourceExhausted(_) => Code::ResourceExhausted,
+            Error::Unauthenticated(_) => Code::Unauthenticated,
+            Error::Unavailable(_) => Code::Unavailable,
+            Error::Io { .. } | Error::Model { .. } | Error::Runtime(_) | Error::Training(_) => {
+                Code::Internal
+            }
+        };
+        Status::new(code, e.to_string())
+    }
+}
+
+/// Protobuf detections → domain detections; a missing box is an error naming its field.
+fn detections_from_pb(field: &str, dets: Vec<pb::Detection>) -> crate::Result<Vec<Detection>> {
+    dets.into_iter()
+        .enumerate()
+        .map(|(i, d)| {
+            let b = d
+                .bbox
+                .ok_or_else(|| Error::invalid(format!("{field}[{i}].bbox"), "missing"))?;
+            Ok(Detection {
+                bbox: [b.x1, b.y1, b.x2, b.y2],
+                score: d.score.unwrap_or(1.0),
+                id: None,
+                appearance: (!d.appearance.is_empty()).then_some(d.appearance),
+            })
+        })
+        .collect()
+}
+
+/// Protobuf batch → (scene, domain batch).
+pub fn batch_from_pb(b: pb::Batch) -> crate::Result<(String, Batch)> {
+    let detections = detections_from_pb("detections", b.detections)?;
+    Ok((
+        b.scene,
+        Batch {
+            camera: b.camera,
+            frame_id: b.frame_id,
+            detections,
+        },
+    ))
+}
+
+/// Protobuf unary request → (scene, domain request).
+pub fn associate_from_pb(
+    r: pb::AssociateRequest,
+) -> crate::Result<(String, api::AssociateRequest)> {
+    let views = r
+        .views
+        .into_iter()
+        .enumerate()
+        .map(|(k, v)| {
+            Ok(api::CameraView {
+                camera: v.camera,
+                detections: detections_from_pb(&format!("views[{k}].detections"), v.detections)?,
+            })
+        })
+        .collect::<crate::Result<_>>()?;
+    Ok((
+        r.scene,
+        api::AssociateRequest {
+            frame_id: r.frame_id,
+            views,
+        },
+    ))
+}
+
+/// Domain result → protobuf.
+pub fn result_to_pb(r: &api::FrameResult) -> pb::FrameResult {
+    pb::FrameResult {
+        scene: r.scene.clone(),
+        frame_id: r.frame_id,
+        complete: r.complete,
+        missing_cameras: r.missing_cameras.clone(),
+        identities: r
+            .identities
+            .iter()
+            .map(|i| pb::Identity {
+                id: i.id as u32,
+                confidence: i.confidence,
+                members: i
+                    .members
+                    .iter()
+                    .map(|m| pb::Member {
+                        camera: m.camera.clone(),
+                        camera_index: m.camera_index as u32,
+                        index: m.index as u32,
+                    })
+                    .collect(),
+            })
+            .collect(),
+        latency_ms: r.latency_ms,
+        error: r.error.clone().unwrap_or_default(),
+    }
+}
+
+fn scene_to_pb(s: api::SceneDescription) -> pb::Scene {
+    pb::Scene {
+        name: s.name,
+        cameras: s
+            .cameras
+            .into_iter()
+            .map(|c| pb::Camera {
+                name: c.name,
+                width: c.width,
+                height: c.height,
+            })
+            .collect(),
+        threshold: s.threshold,
+        alpha: s.alpha,
+        model_version: s.model_version,
+        appearance_length: s.appearance_length.unwrap_or(0) as u32,
+        sync_timeout_ms: s.sync_timeout_ms,
+    }
+}
+
+/// Pushes one protobuf batch and turns the outcome into its acknowledgement.
+fn push_one(svc: &Service, b: pb::Batch) -> pb::BatchAck {
+    let (scene, camera, frame_id) = (b.scene.clone(), b.camera.clone(), b.frame_id);
+    let outcome = batch_from_pb(b)
+        .inspect_err(|e| svc.metrics().error(e.kind()))
+        .and_then(|(scene, batch)| svc.push(&scene, batch));
+    let (code, message, kind) = match outcome {
+        Ok(_) => (0, String::new(), String::new()),
+        Err(e) => {
+            let kind = e.kind().to_string();
+            let status = Status::from(e);
+            (status.code() as i32, status.message().to_string(), kind)
+        }
+    };
+    pb::BatchAck {
+        scene,
+        camera,
+        frame_id,
+        code,
+        message,
+        kind,
+    }
+}
+
+type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
+
+/// The tonic service: a thin shell over [`Service`].
+#[derive(Debug, Clone)]
+pub struct GrpcService {
+    svc: Arc<Service>,
+}
+
+impl GrpcService {
+    /// Wraps the shared domain service.
+    pub fn new(svc: Arc<Service>) -> Self {
+        GrpcService { svc }
+    }
+}
+
+#[tonic::async_trait]
+impl pb::association_server::Association for GrpcService {
+    async fn associate(
+        &self,
+        request: Request<pb::AssociateRequest>,
+    ) -> Result<Response<pb::FrameResult>, Status> {
+        let (scene, req) = associate_from_pb(request.into_inner())
+            .inspect_err(|e| self.svc.metrics().error(e.kind()))?;
+        let r = self.svc.associate(&scene, req).await?;
+        Ok(Response::new(result_to_pb(&r)))
+    }
+
+    type PushStream = BoxStream<pb::BatchAck>;
+
+    async fn push(
+        &self,
+        request: Request<Streaming<pb::Batch>>,
+    ) -> Result<Response<Self::PushStream>, Status> {
+        let svc = self.svc.clone();
+        let stop = svc.shutting_down();
+        let out = request
+            .into_inner()
+            .take_until(stop)
+            .map(move |m| m.map(|b| push_one(&svc, b)));
+        Ok(Response::new(Box::pin(out)))
+    }
+
+    type SubscribeStream = BoxStream<pb::FrameResult>;
+
+    async fn subscribe(
+        &self,
+        request: Request<pb::SubscribeRequest>,
+    ) -> Result<Response<Self::SubscribeStream>, Status> {
+        let results = self.svc.subscribe(&request.into_inner().scene)?;
+        let out = results.map(|r| r.map(|r| result_to_pb(&r)).map_err(Status::from));
+        Ok(Response::new(Box::pin(out)))
+    }
+
+    type StreamStream = BoxStream<pb::StreamResponse>;
+
+    async fn stream(
+        &self,
+        request: Request<Streaming<pb::Batch>>,
+    ) -> Result<Response<Self::StreamStream>, Status> {
+        use pb::stream_response::Event;
+        let svc = self.svc.clone();
+        let mut input = request.into_inner();
+        let (tx, rx) = mpsc::channel::<Result<pb::StreamResponse, Status>>(64);
+        tokio::spawn(async move {
+            let mut scene: Option<String> = None;
+            let stop = svc.shutting_down();
+            tokio::pin!(stop);
+            loop {
+                let msg = tokio::select! {
+                    m = input.next() => m,
+                    _ = &mut stop => None,
+                };
+                let b = match msg {
+                    None => break,
+                    Some(Err(s)) => {
+                        let _ = tx.send(Err(s)).await;
+                        break;
+                    }
+                    Some(Ok(b)) => b,
+                };
+                let ack = match &scene {
+                    None => match svc.subscribe(&b.scene) {
+                        Ok(mut results) => {
+                            scene = Some(b.scene.clone());
+                            let tx = tx.clone();
+                            tokio::spawn(async move {
+                                while let Some(r) = results.next().await {
+                                    let item = r
+                                        .map(|r| pb::StreamResponse {
+                                            event: Some(Event::Result(result_to_pb(&r))),
+                                        })
+                                        .map_err(Status::from);
+                                    if tx.send(item).await.is_err() {
+                                        break;
+                                    }
+                                }
+                            });
+                            push_one(&svc, b)
+                        }
+                        Err(e) => reject(&b, e),
+                    },
+                    Some(s) if *s != b.scene => reject(
+                        &b,
+                        Error::invalid(
+                            "scene",
+                            format!("this stream serves scene '{s}', got '{}'", b.scene),
+                        ),
+                    ),
+                    Some(_) => push_one(&svc, b),
+                };
+                let item = pb::StreamResponse {
+                    event: Some(Event::Ack(ack)),
+                };
+                if tx.send(Ok(item)).await.is_err() {
+                    break;
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
+    }
+
+    async fn list_scenes(
+        &self,
+        _request: Request<pb::ListScenesRequest>,
+    ) -> Result<Response<pb::ListScenesResponse>, Status> {
+        Ok(Response::new(pb::ListScenesResponse {
+            scenes: self.svc.scenes().into_iter().map(scene_to_pb).collect(),
+        }))
+    }
+
+    async fn get_scene(
+        &self,
+        request: Request<pb::GetSceneRequest>,
+    ) -> Result<Response<pb::Scene>, Status> {
+        let s = self.svc.describe(&request.into_inner().scene)?;
+        Ok(Response::new(scene_to_pb(s)))
+    }
+}
+
+fn reject(b: &pb::Batch, e: Error) -> pb::BatchAck {
+    let kind = e.kind().to_string();
+    let status = Status::from(e);
+    pb::BatchAck {
+        scene: b.scene.clone(),
+        camera: b.camera.clone(),
+        frame_id: b.frame_id,
+        code: status.code() as i32,
+        message: status.message().to_string(),
+        kind,
+    }
+}

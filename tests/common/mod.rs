@@ -1,0 +1,232 @@
+//! Shared helpers of the serve integration tests: a small random encoder exported with the
+//! project's exporter (real ONNX file, real ONNX Runtime), a real server on 127.0.0.1:0, gRPC
+//! and HTTP clients, and hang guards (never timing assertions).
+#![allow(dead_code)]
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use crossview::core::CameraSpec;
+use crossview::model::export::write_onnx;
+use crossview::model::{EncoderConfig, EncoderWeights, ModelMetadata};
+use crossview::serve::pb;
+use crossview::serve::pb::association_client::AssociationClient;
+use crossview::serve::{ModelSpec, ServeConfig};
+use tokio::sync::oneshot;
+use tonic::transport::Channel;
+
+/// Generous upper bound for anything a test waits on (a hang guard, not a timing assertion).
+pub const HANG_GUARD: Duration = Duration::from_secs(60);
+
+/// Awaits `f`, failing the test if it takes longer than [`HANG_GUARD`].
+pub async fn guard<F: Future>(what: &str, f: F) -> F::Output {
+    tokio::time::timeout(HANG_GUARD, f)
+        .await
+        .unwrap_or_else(|_| panic!("hang guard: {what} did not finish"))
+}
+
+/// Camera names of the test scene.
+pub const CAMERAS: [&str; 3] = ["c0", "c1", "c2"];
+
+/// The test scene's cameras (different image sizes on purpose).
+pub fn cameras() -> Vec<CameraSpec> {
+    vec![
+        CameraSpec {
+            name: "c0".into(),
+            width: 1920,
+            height: 1080,
+        },
+        CameraSpec {
+            name: "c1".into(),
+            width: 1280,
+            height: 720,
+        },
+        CameraSpec {
+            name: "c2".into(),
+            width: 640,
+            height: 480,
+        },
+    ]
+}
+
+/// Exports a small random encoder for [`cameras`] to `dir/<stem>.onnx` with the project's
+/// exporter and returns its path.
+pub fn export_model(dir: &Path, stem: &str) -> PathBuf {
+    let config = EncoderConfig {
+        fourier_features: 8,
+        camera_dim: 16,
+        width: 48,
+        blocks: 2,
+    };
+    let weights = EncoderWeights::random(3, config, 11).expect("random weights");
+    let mut meta = ModelMetadata::new(cameras());
+    meta.threshold = 0.1;
+    meta.version = "test-1".into();
+    let path = dir.join(format!("{stem}.onnx"));
+    write_onnx(&path, &weights, &meta).expect("export ONNX");
+    path
+}
+
+/// A server running in this process on 127.0.0.1:0 with one scene, `lab`.
+pub struct TestServer {
+    pub addr: SocketAddr,
+    pub dir: tempfile::TempDir,
+    stop: Option<oneshot::Sender<()>>,
+    task: Option<tokio::task::JoinHandle<crossview::Result<()>>>,
+}
+
+/// Starts a server with scene `lab` (3 cameras); `configure` adjusts the configuration.
+pub async fn start(configure: impl FnOnce(&mut ServeConfig)) -> TestServer {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let model = export_model(dir.path(), "lab");
+    let mut config = ServeConfig {
+        models: vec![ModelSpec::parse(model.to_str().unwrap()).unwrap()],
+        ..ServeConfig::default()
+    };
+    configure(&mut config);
+    let server_uses_tls = config.tls.is_some();
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+        .await
+        .expect("bind");
+    let addr = listener.local_addr().unwrap();
+    let (tx, rx) = oneshot::channel::<()>();
+    let task = tokio::spawn(crossview::serve::run(config, listener, async move {
+        let _ = rx.await;
+    }));
+    let server = TestServer {
+        addr,
+        dir,
+        stop: Some(tx),
+        task: Some(task),
+    };
+    if server_uses_tls {
+        // Connections wait in the listener's backlog until the server accepts them.
+        return server;
+    }
+    let http = reqwest::Client::new();
+    guard("server readiness", async {
+        loop {
+            if let Ok(r) = http.get(server.url("/readyz")).send().await
+                && r.status().is_success()
+            {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    server
+}
+
+impl TestServer {
+    /// `http://addr{path}`.
+    pub fn url(&self, path: &str) -> String {
+        format!("http://{}{}", self.addr, path)
+    }
+
+    /// A new gRPC connection (its own TCP connection).
+    pub async fn grpc(&self) -> AssociationClient<Channel> {
+        let ch = Channel::from_shared(format!("http://{}", self.addr))
+            .unwrap()
+            .connect()
+            .await
+            .expect("gRPC connect");
+        AssociationClient::new(ch)
+    }
+
+    /// `/metrics` text.
+    pub async fn metrics(&self) -> String {
+        reqwest::get(self.url("/metrics"))
+            .await
+            .unwrap()
+            .text()
+            .await
+            .unwrap()
+    }
+
+    /// Triggers graceful shutdown and waits for `run` to return.
+    pub async fn shutdown(mut self) -> crossview::Result<()> {
+        if let Some(tx) = self.stop.take() {
+            let _ = tx.send(());
+        }
+        let task = self.task.take().unwrap();
+        guard("server shutdown", task).await.expect("server task")
+    }
+}
+
+impl Drop for TestServer {
+    fn drop(&mut self) {
+        if let Some(tx) = self.stop.take() {
+            let _ = tx.send(());
+        }
+    }
+}
+
+/// Value of the metric line starting with `prefix` (name plus labels), 0 when absent.
+pub fn metric(text: &str, prefix: &str) -> f64 {
+    text.lines()
+        .find(|l| l.starts_with(prefix))
+        .and_then(|l| l.rsplit(' ').next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0.0)
+}
+
+/// A protobuf detection.
+pub fn det(x1: f32, y1: f32, x2: f32, y2: f32) -> pb::Detection {
+    pb::Detection {
+        bbox: Some(pb::BoundingBox { x1, y1, x2, y2 }),
+        score: None,
+        appearance: vec![],
+    }
+}
+
+/// `n` deterministic, valid detections that depend on camera and frame.
+pub fn dets(camera: usize, frame: u64, n: usize) -> Vec<pb::Detection> {
+    (0..n)
+        .map(|i| {
+            let x = 10.0 + 50.0 * i as f32 + 3.0 * camera as f32 + (frame % 7) as f32;
+            det(x, 20.0 + i as f32, x + 30.0, 200.0 + i as f32)
+        })
+        .collect()
+}
+
+/// A protobuf batch of scene `lab`.
+pub fn batch(camera: usize, frame: u64, n: usize) -> pb::Batch {
+    pb::Batch {
+        scene: "lab".into(),
+        camera: CAMERAS[camera].into(),
+        frame_id: frame,
+        detections: dets(camera, frame, n),
+    }
+}
+
+/// The same batch in its SPEC §7 JSON form.
+pub fn batch_json(camera: usize, frame: u64, n: usize) -> serde_json::Value {
+    let dets: Vec<serde_json::Value> = dets(camera, frame, n)
+        .into_iter()
+        .map(|d| {
+            let b = d.bbox.unwrap();
+            serde_json::json!({ "bbox": [b.x1, b.y1, b.x2, b.y2] })
+        })
+        .collect();
+    serde_json::json!({ "camera": CAMERAS[camera], "frame_id": frame, "detections": dets })
+}
+
+/// Checks a result's identities: members point at existing boxes, at most one per camera per
+/// identity, and no box in two identities.
+pub fn check_identities(r: &pb::FrameResult, boxes_per_camera: &[usize]) {
+    let mut seen = std::collections::HashSet::new();
+    for id in &r.identities {
+        assert!((0.0..=1.0).contains(&id.confidence), "{id:?}");
+        let mut cams = std::collections::HashSet::new();
+        for m in &id.members {
+            let c = m.camera_index as usize;
+            assert_eq!(m.camera, CAMERAS[c]);
+            assert!((m.index as usize) < boxes_per_camera[c], "{m:?}");
+            assert!(cams.insert(c), "two members of one camera in {id:?}");
+            assert!(seen.insert((c, m.index)), "box in two identities: {m:?}");
+        }
+    }
+}
