@@ -26,3 +26,20 @@ lint:
 
 fmt:
 	cargo fmt
+
+.PHONY: loadtest loadtest-check smoke
+
+## loadtest: build the load generator (target/release/crossview-loadtest; see loadtest/README.md)
+loadtest:
+	cargo build --release -p crossview-loadtest
+
+## loadtest-check: format, lint and unit-test the load generator (a separate workspace package)
+loadtest-check:
+	cargo fmt -p crossview-loadtest --check
+	cargo clippy -p crossview-loadtest --all-targets -- -D warnings
+	cargo test -p crossview-loadtest
+
+## smoke: build the container images and run the compose stack end to end under podman
+## (slow, needs root; not part of CI; see deploy/README.md)
+smoke: setup
+	bash deploy/smoke.sh
