@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Fetches the ONNX Runtime shared library (from the PyPI wheel onnxruntime==1.31.1) into the
-# project-local cache .cache/onnxruntime/ when it is absent. Idempotent; needs python3 + pip.
+# Project setup, idempotent, needs only python3 + pip (PyPI):
+#  - .cache/venv: grpcio + grpcio-tools for the Python gRPC client test;
+#  - .cache/onnxruntime/: the ONNX Runtime shared library from the PyPI wheel onnxruntime==1.31.1.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 

@@ -1,4 +1,4 @@
-//! Property: the ONNX encoder never panics on arbitrary inputs — finite boxes embed to finite
+//! Property: the ONNX encoder never panics on arbitrary inputs — finite, sane boxes embed to finite
 //! values equal to the reference forward pass; anything else is `InvalidArgument`.
 use crossview::Error;
 use crossview::core::CameraSpec;
@@ -32,7 +32,10 @@ proptest! {
             OnnxEncoder::from_bytes("p.onnx", &to_onnx_bytes(&weights, &meta).unwrap()).unwrap();
         let boxes: Vec<[f32; 4]> = items.iter().map(|(b, _)| *b).collect();
         let cams: Vec<i64> = items.iter().map(|(_, c)| *c).collect();
-        let valid = boxes.iter().flatten().all(|v| v.is_finite())
+        let valid = boxes
+            .iter()
+            .flatten()
+            .all(|v| v.is_finite() && v.abs() <= crossview::model::weights::MAX_NORMALIZED_COORD)
             && cams.iter().all(|c| (0..3).contains(c));
         match enc.embed(&boxes, &cams) {
             Ok(y) => {

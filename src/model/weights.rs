@@ -7,6 +7,10 @@ use rand_distr::StandardNormal;
 
 use crate::{Error, Result};
 
+/// Largest accepted magnitude of a normalised box coordinate. Real boxes lie near [0, 1];
+/// far larger finite values would overflow the Fourier features to inf/NaN.
+pub const MAX_NORMALIZED_COORD: f32 = 1e3;
+
 /// A dense layer `y = x W^T + b` with `weight` row-major `[out_dim, in_dim]`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Linear {
@@ -279,6 +283,18 @@ impl EncoderWeights {
             return Err(Error::invalid(
                 format!("boxes[{i}]"),
                 format!("coordinates must be finite, got {:?}", boxes[i]),
+            ));
+        }
+        if let Some(i) = boxes
+            .iter()
+            .position(|b| b.iter().any(|v| v.abs() > MAX_NORMALIZED_COORD))
+        {
+            return Err(Error::invalid(
+                format!("boxes[{i}]"),
+                format!(
+                    "normalised coordinates must be within ±{MAX_NORMALIZED_COORD} image sizes, got {:?}",
+                    boxes[i]
+                ),
             ));
         }
         if let Some(i) = cameras
