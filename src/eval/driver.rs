@@ -158,26 +158,8 @@ pub fn evaluate(
 mod tests {
     use super::*;
     use crate::core::{CameraSpec, Detection};
-    use ndarray::Array2;
 
-    /// Embeds a box as its normalised bottom-centre: the same ground point matches across
-    /// cameras that share an image frame (a stand-in for a trained encoder).
-    struct BottomCentre;
-
-    impl Encoder for BottomCentre {
-        fn embed(&mut self, boxes: &[[f32; 4]], _cameras: &[i64]) -> Result<Array2<f32>> {
-            Ok(Array2::from_shape_fn((boxes.len(), 2), |(i, k)| {
-                if k == 0 {
-                    (boxes[i][0] + boxes[i][2]) / 2.0
-                } else {
-                    boxes[i][3]
-                }
-            }))
-        }
-        fn dim(&self) -> usize {
-            2
-        }
-    }
+    use crate::model::testing::BottomCentre;
 
     fn recording() -> Recording {
         let scene = SceneSpec {

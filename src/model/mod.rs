@@ -7,6 +7,9 @@ pub mod onnx;
 pub mod runtime;
 pub mod weights;
 
+#[cfg(test)]
+pub(crate) mod testing;
+
 use ndarray::Array2;
 
 pub use export::{read_weights, read_weights_from_bytes, to_onnx_bytes, write_onnx};
