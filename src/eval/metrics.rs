@@ -177,6 +177,20 @@ fn ratio(num: usize, den: usize) -> f64 {
     }
 }
 
+/// Sorts `(score, is_positive)` by score, descending, and yields the cumulative
+/// `(true positives, false positives)` after each group of tied scores — one entry per distinct
+/// threshold, the walk both [`average_precision`] and [`fpr_at_95_recall`] are built on.
+fn cumulative_counts(scored: &mut [(f32, bool)]) -> impl Iterator<Item = (usize, usize)> + '_ {
+    scored.sort_unstable_by(|x, y| y.0.total_cmp(&x.0));
+    let (mut tp, mut fp) = (0usize, 0usize);
+    scored.chunk_by(|x, y| x.0 == y.0).map(move |group| {
+        let pos = group.iter().filter(|s| s.1).count();
+        tp += pos;
+        fp += group.len() - pos;
+        (tp, fp)
+    })
+}
+
 /// Average precision exactly as scikit-learn's `average_precision_score`: with the scores
 /// sorted descending and tied scores grouped into one threshold,
 /// `AP = Σ_k (R_k − R_{k−1}) · P_k`. `scored` holds `(score, is_positive)`; 0 without positives.
@@ -185,21 +199,9 @@ pub fn average_precision(scored: &mut [(f32, bool)]) -> f64 {
     if total_pos == 0 {
         return 0.0;
     }
-    scored.sort_unstable_by(|x, y| y.0.total_cmp(&x.0));
-    let (mut tp, mut fp) = (0usize, 0usize);
     let mut prev_recall = 0.0;
     let mut ap = 0.0;
-    let mut k = 0;
-    while k < scored.len() {
-        let t = scored[k].0;
-        while k < scored.len() && scored[k].0 == t {
-            if scored[k].1 {
-                tp += 1;
-            } else {
-                fp += 1;
-            }
-            k += 1;
-        }
+    for (tp, fp) in cumulative_counts(scored) {
         let recall = tp as f64 / total_pos as f64;
         let precision = tp as f64 / (tp + fp) as f64;
         ap += (recall - prev_recall) * precision;
@@ -217,19 +219,7 @@ pub fn fpr_at_95_recall(scored: &mut [(f32, bool)]) -> f64 {
     if total_pos == 0 || total_neg == 0 {
         return 0.0;
     }
-    scored.sort_unstable_by(|x, y| y.0.total_cmp(&x.0));
-    let (mut tp, mut fp) = (0usize, 0usize);
-    let mut k = 0;
-    while k < scored.len() {
-        let t = scored[k].0;
-        while k < scored.len() && scored[k].0 == t {
-            if scored[k].1 {
-                tp += 1;
-            } else {
-                fp += 1;
-            }
-            k += 1;
-        }
+    for (tp, fp) in cumulative_counts(scored) {
         // tp / total_pos >= 0.95, in integers.
         if tp * 100 >= 95 * total_pos {
             return fp as f64 / total_neg as f64;
