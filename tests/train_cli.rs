@@ -1,5 +1,6 @@
 //! `crossview train` as a user runs it: writes the ONNX model (with metadata, threshold from
-//! validation), the SVG curve and the history; refuses a one-camera recording clearly.
+//! validation), the SVG curve and the history; records the training-box filter; refuses a
+//! one-camera recording and a filter that leaves no boxes clearly.
 use std::process::Command;
 
 use crossview::core::{CameraSpec, Detection, Frame, SceneSpec};
@@ -145,4 +146,48 @@ fn one_camera_is_refused_with_a_clear_message() {
     let err = String::from_utf8_lossy(&st.stderr);
     assert!(err.contains("at least two"), "{err}");
     assert!(!dir.path().join("m.onnx").exists());
+}
+
+#[test]
+fn box_filter_is_recorded_and_an_empty_result_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("train.jsonl");
+    write_recording(&data, &recording(2, 24, false)).unwrap();
+    let train = |extra: &[&str], out: &std::path::Path| {
+        Command::new(env!("CARGO_BIN_EXE_crossview"))
+            .args(["train", "--quiet", "--epochs", "1", "--width", "16"])
+            .args(["--fourier-features", "8", "--camera-dim", "8"])
+            .args(extra)
+            .arg("--data")
+            .arg(&data)
+            .arg("--out")
+            .arg(out)
+            .output()
+            .unwrap()
+    };
+    // Boxes are 40-43 px of a 100 px image: 0.3 keeps them all and is stored in the model.
+    let out = dir.path().join("kept.onnx");
+    let st = train(
+        &["--min-box-height", "0.3", "--drop-static-iou", "0.95"],
+        &out,
+    );
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    let (_, meta) = read_weights(&out).unwrap();
+    let filter = &meta.extra["crossview.train_box_filter"];
+    assert!(filter.contains("\"min_height\":0.3"), "{filter}");
+    assert!(filter.contains("\"static_iou\":0.95"), "{filter}");
+    // 0.5 removes every box: a clear refusal, no model written.
+    let out = dir.path().join("empty.onnx");
+    let st = train(&["--min-box-height", "0.5"], &out);
+    assert!(!st.status.success());
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(err.contains("no training boxes left"), "{err}");
+    assert!(!out.exists());
+    let st = train(&["--min-box-height", "1.5"], &out);
+    assert!(!st.status.success());
+    assert!(String::from_utf8_lossy(&st.stderr).contains("--min-box-height"));
 }

@@ -9,6 +9,7 @@ use clap::Args;
 use crate::io::recording::read_recording;
 use crate::model::ModelMetadata;
 use crate::model::export::write_onnx;
+use crate::train::clean::BoxFilter;
 use crate::train::curve::write_svg;
 use crate::train::trainer::{CheckpointOptions, TrainConfig, TrainOutcome, Validator, train};
 use crate::train::validate::{EvalValidator, candidate_thresholds};
@@ -61,6 +62,18 @@ pub struct TrainArgs {
     /// losses; 1.0 = the paper.
     #[arg(long, default_value_t = 1.0)]
     pub pair_fraction: f32,
+    /// [ours] Drop training boxes shorter than this fraction of their image height
+    /// (0 = keep all; far-away people rarely appear in another camera).
+    #[arg(long, default_value_t = 0.0)]
+    pub min_box_height: f32,
+    /// [ours] Drop training boxes that overlap a box of the same camera `--static-offset`
+    /// frames away with an IoU above this (0 = keep all; static boxes carry no
+    /// synchronization signal).
+    #[arg(long, default_value_t = 0.0)]
+    pub drop_static_iou: f32,
+    /// Frame distance (positions in the recording) at which `--drop-static-iou` looks.
+    #[arg(long, default_value_t = 10)]
+    pub static_offset: usize,
     /// Inference threshold stored when no validation data is given.
     #[arg(long, default_value_t = 0.4)]
     pub threshold: f32,
@@ -97,6 +110,17 @@ pub struct TrainArgs {
     pub quiet: bool,
 }
 
+impl TrainArgs {
+    /// The training-box cleaning the options ask for.
+    fn box_filter(&self) -> BoxFilter {
+        BoxFilter {
+            min_height: self.min_box_height,
+            static_iou: self.drop_static_iou,
+            static_offset: self.static_offset,
+        }
+    }
+}
+
 /// Runs `crossview train`.
 pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     if let Some(t) = args.threads {
@@ -109,8 +133,29 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     }
     let rec = read_recording(&args.data)
         .with_context(|| format!("reading training data {}", args.data.display()))?;
-    let set = TrainingSet::from_recording(&rec.without_ids(), MIN_FRAMES)
+    if !(0.0..1.0).contains(&args.min_box_height) || !(0.0..=1.0).contains(&args.drop_static_iou) {
+        anyhow::bail!("--min-box-height must be within [0, 1) and --drop-static-iou within [0, 1]");
+    }
+    let mut set = TrainingSet::from_recording(&rec.without_ids(), MIN_FRAMES)
         .with_context(|| format!("training data {}", args.data.display()))?;
+    let filter = args.box_filter();
+    let removed = filter.apply(&mut set);
+    if !filter.is_off() {
+        tracing::info!(
+            before = removed.before,
+            small = removed.small,
+            stationary = removed.stationary,
+            kept = set.num_boxes(),
+            "filtered training boxes"
+        );
+    }
+    if set.num_boxes() == 0 {
+        anyhow::bail!(
+            "no training boxes left after --min-box-height {} / --drop-static-iou {}",
+            args.min_box_height,
+            args.drop_static_iou
+        );
+    }
     let cfg = TrainConfig {
         fourier_features: args.fourier_features,
         camera_dim: args.camera_dim,
@@ -243,6 +288,10 @@ fn metadata(
     extra.insert(
         "crossview.train_config".into(),
         serde_json::to_string(cfg).unwrap_or_default(),
+    );
+    extra.insert(
+        "crossview.train_box_filter".into(),
+        serde_json::to_string(&args.box_filter()).unwrap_or_default(),
     );
     if let Some(s) = out.best {
         extra.insert(

@@ -1,6 +1,7 @@
 //! Self-supervised training (SPEC §2–§4) with candle, exporting SPEC §8 ONNX files.
 //!
 //! - [`data`]: the recording as per-frame, per-camera normalised images.
+//! - [`clean`]: **[ours]** dropping static and small detector boxes before training.
 //! - [`sampler`]: anchor/positive/negative triplets.
 //! - [`model`]: the candle encoder + decoder, convertible to [`crate::model::EncoderWeights`].
 //! - [`losses`]: synchronization, re-projection and edge losses, batched over triplets.
@@ -8,6 +9,7 @@
 
 pub mod adam;
 pub mod checkpoint;
+pub mod clean;
 pub mod curve;
 pub mod data;
 pub mod losses;
