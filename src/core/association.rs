@@ -169,18 +169,49 @@ fn appearance_matrix(dets: &[crate::core::Detection]) -> Option<Array2<f32>> {
 }
 
 /// Associates one frame from its per-view embeddings (as returned by [`embed_frame`]):
-/// SPEC §3 matching for every pair `cam_a < cam_b` with boxes on both sides (appearance
-/// fusion when every box of both views carries an appearance vector of one common length),
-/// then global identities (always). With [`Mode::Global`] the pairs' matches are the ones
-/// derived from the identities; the score matrices are the same in both modes.
-///
-/// A view whose embedding row count disagrees with its detections is treated as empty
-/// (with a warning); [`embed_frame`] never produces that.
+/// SPEC §3 matching for every pair `cam_a < cam_b` with boxes on both sides (see
+/// [`associate_pairs`]), then global identities (always). With [`Mode::Global`] the pairs'
+/// matches are the ones derived from the identities; the score matrices are the same in both
+/// modes.
 pub fn associate_frame(
     frame: &Frame,
     embeddings: Vec<Option<Array2<f32>>>,
     cfg: &AssociationConfig,
 ) -> FrameAssociation {
+    let (sizes, mut pairs) = match_pairs(frame, &embeddings, cfg);
+    let identities = build_identities(&sizes, &pairs, cfg.threshold);
+    if cfg.mode == Mode::Global {
+        pairs = pairs_from_identities(&identities, &pairs);
+    }
+    FrameAssociation {
+        frame_id: frame.frame_id,
+        embeddings,
+        pairs,
+        identities,
+    }
+}
+
+/// SPEC §3 matching alone, without identities: every pair `cam_a < cam_b` with boxes on both
+/// sides, matched on its own (appearance fusion when every box of both views carries an
+/// appearance vector of one common length). This is all the reference pipeline computes;
+/// [`associate_frame`] adds the identities.
+///
+/// A view whose embedding row count disagrees with its detections is treated as empty
+/// (with a warning); [`embed_frame`] never produces that.
+pub fn associate_pairs(
+    frame: &Frame,
+    embeddings: &[Option<Array2<f32>>],
+    cfg: &AssociationConfig,
+) -> Vec<ViewPair> {
+    match_pairs(frame, embeddings, cfg).1
+}
+
+/// Per-view box counts (0 for unusable views) and the pairwise matchings.
+fn match_pairs(
+    frame: &Frame,
+    embeddings: &[Option<Array2<f32>>],
+    cfg: &AssociationConfig,
+) -> (Vec<usize>, Vec<ViewPair>) {
     let nv = embeddings.len().min(frame.views.len());
     let sizes: Vec<usize> = (0..nv)
         .map(|c| match (&frame.views[c], &embeddings[c]) {
@@ -231,16 +262,7 @@ pub fn associate_frame(
             });
         }
     }
-    let identities = build_identities(&sizes, &pairs, cfg.threshold);
-    if cfg.mode == Mode::Global {
-        pairs = pairs_from_identities(&identities, &pairs);
-    }
-    FrameAssociation {
-        frame_id: frame.frame_id,
-        embeddings,
-        pairs,
-        identities,
-    }
+    (sizes, pairs)
 }
 
 #[cfg(test)]
