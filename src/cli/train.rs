@@ -131,11 +131,11 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     if !(0.0..=1.0).contains(&args.threshold) || !(0.0..=1.0).contains(&args.alpha) {
         anyhow::bail!("--threshold and --alpha must be within [0, 1]");
     }
-    let rec = read_recording(&args.data)
-        .with_context(|| format!("reading training data {}", args.data.display()))?;
     if !(0.0..1.0).contains(&args.min_box_height) || !(0.0..=1.0).contains(&args.drop_static_iou) {
         anyhow::bail!("--min-box-height must be within [0, 1) and --drop-static-iou within [0, 1]");
     }
+    let rec = read_recording(&args.data)
+        .with_context(|| format!("reading training data {}", args.data.display()))?;
     let mut set = TrainingSet::from_recording(&rec.without_ids(), MIN_FRAMES)
         .with_context(|| format!("training data {}", args.data.display()))?;
     let filter = args.box_filter();

@@ -66,43 +66,60 @@ impl BoxFilter {
         if self.is_off() {
             return stats;
         }
-        let original = set.images.clone();
-        let frames = original.len();
-        for (t, row) in set.images.iter_mut().enumerate() {
-            for (c, img) in row.iter_mut().enumerate() {
-                let neighbours: Vec<&Image> = if self.static_iou > 0.0 && self.static_offset > 0 {
-                    [
-                        t.checked_sub(self.static_offset),
-                        Some(t + self.static_offset).filter(|&u| u < frames),
-                    ]
-                    .into_iter()
-                    .flatten()
-                    .map(|u| &original[u][c])
+        // Decide every box on the unfiltered set first, then drop.
+        let images = &set.images;
+        let keep: Vec<Vec<Vec<bool>>> = (0..images.len())
+            .map(|t| {
+                (0..images[t].len())
+                    .map(|c| self.keep_mask(images, t, c, &mut stats))
                     .collect()
-                } else {
-                    Vec::new()
-                };
-                let keep: Vec<bool> = img
-                    .boxes
-                    .iter()
-                    .map(|b| {
-                        if b[3] - b[1] < self.min_height {
-                            stats.small += 1;
-                            return false;
-                        }
-                        let still = neighbours
-                            .iter()
-                            .any(|n| n.boxes.iter().any(|o| iou(b, o) > self.static_iou));
-                        if still {
-                            stats.stationary += 1;
-                        }
-                        !still
-                    })
-                    .collect();
-                retain(img, &keep);
+            })
+            .collect();
+        for (row, row_keep) in set.images.iter_mut().zip(&keep) {
+            for (img, k) in row.iter_mut().zip(row_keep) {
+                retain(img, k);
             }
         }
         stats
+    }
+
+    /// Which boxes of camera `c` at frame position `t` survive, counting the dropped ones.
+    fn keep_mask(
+        &self,
+        images: &[Vec<Image>],
+        t: usize,
+        c: usize,
+        stats: &mut FilterStats,
+    ) -> Vec<bool> {
+        let neighbours: Vec<&Image> = if self.static_iou > 0.0 && self.static_offset > 0 {
+            [
+                t.checked_sub(self.static_offset),
+                Some(t + self.static_offset).filter(|&u| u < images.len()),
+            ]
+            .into_iter()
+            .flatten()
+            .filter_map(|u| images[u].get(c))
+            .collect()
+        } else {
+            Vec::new()
+        };
+        images[t][c]
+            .boxes
+            .iter()
+            .map(|b| {
+                if b[3] - b[1] < self.min_height {
+                    stats.small += 1;
+                    return false;
+                }
+                let still = neighbours
+                    .iter()
+                    .any(|n| n.boxes.iter().any(|o| iou(b, o) > self.static_iou));
+                if still {
+                    stats.stationary += 1;
+                }
+                !still
+            })
+            .collect()
     }
 }
 
