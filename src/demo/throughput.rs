@@ -182,18 +182,12 @@ fn match_frame(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::{CameraSpec, Detection, Frame, SceneSpec};
+    use crate::core::{Detection, Frame, SceneSpec};
 
-    use crate::model::testing::BottomCentre;
+    use crate::model::testing::{BottomCentre, cameras};
 
     fn recording() -> Recording {
-        let cameras = (0..3)
-            .map(|i| CameraSpec {
-                name: format!("c{i}"),
-                width: 100,
-                height: 100,
-            })
-            .collect();
+        let cameras = cameras(3, 100, 100);
         let mut frame = Frame::new(0, 3);
         for c in 0..3 {
             frame.views[c] = Some(vec![

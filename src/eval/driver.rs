@@ -157,20 +157,14 @@ pub fn evaluate(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::{CameraSpec, Detection};
+    use crate::core::Detection;
 
-    use crate::model::testing::BottomCentre;
+    use crate::model::testing::{BottomCentre, cameras};
 
     fn recording() -> Recording {
         let scene = SceneSpec {
             name: "s".into(),
-            cameras: (0..3)
-                .map(|i| CameraSpec {
-                    name: format!("c{i}"),
-                    width: 100,
-                    height: 100,
-                })
-                .collect(),
+            cameras: cameras(3, 100, 100),
         };
         let d = |x: f32, id: u64| Detection {
             id: Some(id),

@@ -459,18 +459,10 @@ fn weights_from_graph(graph: &GraphProto) -> std::result::Result<EncoderWeights,
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::CameraSpec;
+    use crate::model::testing::cameras;
 
     fn meta(n: usize) -> ModelMetadata {
-        ModelMetadata::new(
-            (0..n)
-                .map(|i| CameraSpec {
-                    name: format!("c{i}"),
-                    width: 100,
-                    height: 50,
-                })
-                .collect(),
-        )
+        ModelMetadata::new(cameras(n, 100, 50))
     }
 
     #[test]

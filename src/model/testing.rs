@@ -1,7 +1,8 @@
-//! Test-only encoders shared by unit tests across modules.
+//! Test-only encoders and scene helpers shared by unit tests across modules.
 use ndarray::Array2;
 
 use crate::Result;
+use crate::core::CameraSpec;
 use crate::model::Encoder;
 
 /// Embeds a box as its normalised bottom-centre `(cx, y2)`: the same ground point matches
@@ -21,4 +22,15 @@ impl Encoder for BottomCentre {
     fn dim(&self) -> usize {
         2
     }
+}
+
+/// `n` cameras named `c0`, `c1`, … with one image size.
+pub(crate) fn cameras(n: usize, width: u32, height: u32) -> Vec<CameraSpec> {
+    (0..n)
+        .map(|i| CameraSpec {
+            name: format!("c{i}"),
+            width,
+            height,
+        })
+        .collect()
 }

@@ -148,20 +148,15 @@ pub fn iou(a: &[f32; 4], b: &[f32; 4]) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::{CameraSpec, SceneSpec};
+    use crate::core::SceneSpec;
+    use crate::model::testing::cameras;
 
     fn set(images: Vec<Vec<Vec<[f32; 4]>>>) -> TrainingSet {
         let cams = images[0].len();
         TrainingSet {
             scene: SceneSpec {
                 name: "t".into(),
-                cameras: (0..cams)
-                    .map(|i| CameraSpec {
-                        name: format!("c{i}"),
-                        width: 100,
-                        height: 100,
-                    })
-                    .collect(),
+                cameras: cameras(cams, 100, 100),
             },
             frame_ids: (0..images.len() as u64).collect(),
             images: images
