@@ -1,12 +1,12 @@
 //! Whole-frame association: embed every box of a frame in one encoder call, match every pair of
 //! reported views, and build global identities.
-use ndarray::{Array2, ArrayView2, s};
+use ndarray::Array2;
 
 use crate::core::identity::{Identity, build_identities, pairs_from_identities};
 use crate::core::matching::{
     PairMatching, all_pairs_distances, euclidean_distances, match_from_distances,
 };
-use crate::core::{Frame, SceneSpec};
+use crate::core::{Frame, FrameEmbeddings, SceneSpec};
 use crate::model::Encoder;
 use crate::{Error, Result};
 
@@ -22,8 +22,8 @@ pub struct ViewPair {
 #[derive(Debug, Clone, PartialEq)]
 pub struct FrameAssociation {
     pub frame_id: u64,
-    /// Per-view embeddings (`None` for views that did not report).
-    pub embeddings: Vec<Option<Array2<f32>>>,
+    /// The frame's embeddings (per view; `None` for views that did not report).
+    pub embeddings: FrameEmbeddings,
     /// Every pair `cam_a < cam_b` where both views have at least one box.
     pub pairs: Vec<ViewPair>,
     /// Global identities over all views.
@@ -87,8 +87,9 @@ impl Default for AssociationConfig {
 }
 
 /// Embeds every box of `frame` with ONE encoder call (boxes normalised by their camera's
-/// image size, SPEC §2) and splits the result back per view: `Some([n_c, G])` for reported
-/// views (possibly with zero rows), `None` for views that did not report.
+/// image size, SPEC §2) and keeps the result as it came, with each view's rows:
+/// `Some([n_c, G])` for reported views (possibly with zero rows), `None` for views that did
+/// not report.
 ///
 /// Errors when the frame's camera count differs from the scene's, when a detection is
 /// invalid (non-finite, negative or inverted box, see [`crate::core::Detection::validate`]),
@@ -97,7 +98,7 @@ pub fn embed_frame(
     encoder: &mut dyn Encoder,
     scene: &SceneSpec,
     frame: &Frame,
-) -> Result<Vec<Option<Array2<f32>>>> {
+) -> Result<FrameEmbeddings> {
     if frame.views.len() != scene.cameras.len() {
         return Err(Error::invalid(
             format!("frame {}", frame.frame_id),
@@ -140,18 +141,12 @@ pub fn embed_frame(
             total
         )));
     }
-    let mut start = 0;
-    Ok(frame
+    let rows: Vec<Option<usize>> = frame
         .views
         .iter()
-        .map(|view| {
-            view.as_ref().map(|dets| {
-                let e = all.slice(s![start..start + dets.len(), ..]).to_owned();
-                start += dets.len();
-                e
-            })
-        })
-        .collect())
+        .map(|v| v.as_ref().map(Vec::len))
+        .collect();
+    FrameEmbeddings::new(all, &rows)
 }
 
 /// Appearance matrix of a view when every box has a vector and all have one length.
@@ -175,7 +170,7 @@ fn appearance_matrix(dets: &[crate::core::Detection]) -> Option<Array2<f32>> {
 /// modes.
 pub fn associate_frame(
     frame: &Frame,
-    embeddings: Vec<Option<Array2<f32>>>,
+    embeddings: FrameEmbeddings,
     cfg: &AssociationConfig,
 ) -> FrameAssociation {
     let (sizes, mut pairs) = match_pairs(frame, &embeddings, cfg);
@@ -200,7 +195,7 @@ pub fn associate_frame(
 /// (with a warning); [`embed_frame`] never produces that.
 pub fn associate_pairs(
     frame: &Frame,
-    embeddings: &[Option<Array2<f32>>],
+    embeddings: &FrameEmbeddings,
     cfg: &AssociationConfig,
 ) -> Vec<ViewPair> {
     match_pairs(frame, embeddings, cfg).1
@@ -209,12 +204,12 @@ pub fn associate_pairs(
 /// Per-view box counts (0 for unusable views) and the pairwise matchings.
 fn match_pairs(
     frame: &Frame,
-    embeddings: &[Option<Array2<f32>>],
+    embeddings: &FrameEmbeddings,
     cfg: &AssociationConfig,
 ) -> (Vec<usize>, Vec<ViewPair>) {
-    let nv = embeddings.len().min(frame.views.len());
+    let nv = embeddings.num_views().min(frame.views.len());
     let sizes: Vec<usize> = (0..nv)
-        .map(|c| match (&frame.views[c], &embeddings[c]) {
+        .map(|c| match (&frame.views[c], embeddings.view(c)) {
             (Some(d), Some(e)) if d.len() == e.nrows() => d.len(),
             (Some(d), Some(e)) => {
                 tracing::warn!(
@@ -239,11 +234,8 @@ fn match_pairs(
         .collect();
     // Views with boxes, in camera order, and all their pairwise geometric distances.
     let cams: Vec<usize> = (0..nv).filter(|&c| sizes[c] > 0).collect();
-    let views: Vec<ArrayView2<f32>> = cams
-        .iter()
-        .filter_map(|&c| embeddings[c].as_ref().map(|e| e.view()))
-        .collect();
-    let mut dists = all_pairs_distances(&views).into_iter();
+    let rows: Vec<_> = cams.iter().filter_map(|&c| embeddings.rows(c)).collect();
+    let mut dists = all_pairs_distances(embeddings.matrix(), &rows).into_iter();
     let mut pairs = Vec::with_capacity(dists.len());
     for (x, &a) in cams.iter().enumerate() {
         for &b in &cams[x + 1..] {
@@ -320,8 +312,8 @@ mod tests {
         let mut enc = CentreEncoder { calls: 0 };
         let emb = embed_frame(&mut enc, &sc, &frame).unwrap();
         assert_eq!(enc.calls, 1);
-        assert_eq!(emb[0].as_ref().unwrap().nrows(), 2);
-        assert_eq!(emb[2].as_ref().unwrap().nrows(), 0);
+        assert_eq!(emb.view(0).unwrap().nrows(), 2);
+        assert_eq!(emb.view(2).unwrap().nrows(), 0);
         let fa = associate_frame(&frame, emb, &AssociationConfig::default());
         let cams: Vec<_> = fa.pairs.iter().map(|p| (p.cam_a, p.cam_b)).collect();
         assert_eq!(cams, vec![(0, 1), (0, 3), (1, 3)]);

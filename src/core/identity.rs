@@ -21,14 +21,18 @@
 //!
 //! A pair of clusters is a candidate only when some member pair scores `S >= threshold`
 //! (an average cannot reach the threshold otherwise), so with a sensible threshold each
-//! cluster has a handful of candidates. Per-cluster best/second-best caches are refreshed
-//! only for the neighbours of a merge. A WILDTRACK frame (7 × 35 boxes) takes about half a
-//! millisecond on a loaded 2-vCPU machine (BENCHMARKS.md).
+//! cluster has a handful of candidates and no `N × N` state is kept. Candidates wait in a
+//! max-heap at their current linkage; a merge recomputes only the merged cluster's links
+//! (the two old links added up, or one old link plus the raw member scores it lacked) and
+//! pushes them, and outdated heap entries are skipped when popped. A WILDTRACK-sized frame
+//! (7 × 35 boxes) takes well under a tenth of a millisecond (BENCHMARKS.md).
 //!
 //! # Confidence
 //! A cluster of two or more boxes: the mean `S` over all its member pairs (its internal
 //! average linkage). A singleton: `1 − max S` to any box of another camera (how clearly it
 //! matches nobody), or 1 when no other camera has boxes. Both lie in [0, 1] (clamped).
+use std::collections::BinaryHeap;
+
 use crate::core::association::ViewPair;
 use crate::core::matching::{Match, PairMatching};
 
@@ -43,178 +47,240 @@ pub struct Identity {
     pub members: Vec<(usize, usize)>,
 }
 
-/// A merge candidate of a cluster: `(linkage, partner)`.
-type Cand = Option<(f32, usize)>;
+/// The original scores of a frame, looked up by flattened box index (boxes numbered camera
+/// by camera).
+struct Scores<'a> {
+    pairs: &'a [ViewPair],
+    /// First flattened index of each camera.
+    offsets: Vec<usize>,
+    cam_of: Vec<usize>,
+    cameras: usize,
+    /// `table[a * cameras + b]`: the pair scoring cameras `a` and `b`, and whether it is
+    /// stored as `(b, a)`.
+    table: Vec<Option<(usize, bool)>>,
+}
 
-/// `a` ranks above `b`: higher linkage, ties to the lower partner index (a strict total
-/// order, so the result never depends on the order candidates were seen in).
-fn ranks_above(a: (f32, usize), b: Cand) -> bool {
-    match b {
-        None => true,
-        Some((l, p)) => a.0 > l || (a.0 == l && a.1 < p),
+impl Scores<'_> {
+    /// The highest finite score of box `i` to any box of another camera (read only for the
+    /// boxes left alone, so it is not precomputed for all).
+    fn best(&self, i: usize) -> Option<f32> {
+        let a = self.cam_of[i];
+        let x = i - self.offsets[a];
+        (0..self.cameras)
+            .filter_map(|b| self.table[a * self.cameras + b])
+            .flat_map(|(p, swapped)| {
+                let s = &self.pairs[p].matching.scores;
+                if swapped { s.column(x) } else { s.row(x) }
+            })
+            .copied()
+            .filter(|v| v.is_finite())
+            .reduce(f32::max)
+    }
+
+    /// The finite score between boxes `i` and `j` (different cameras), if any.
+    fn get(&self, i: usize, j: usize) -> Option<f32> {
+        let (a, b) = (self.cam_of[i], self.cam_of[j]);
+        let (p, swapped) = self.table[a * self.cameras + b]?;
+        let (x, y) = (i - self.offsets[a], j - self.offsets[b]);
+        let s = &self.pairs[p].matching.scores;
+        let v = if swapped { s[(y, x)] } else { s[(x, y)] };
+        v.is_finite().then_some(v)
     }
 }
 
-/// Best and second-best merge partners of a cluster. `second` is exact only while
-/// `second_known`; it is needed only when the best partner disappears.
-#[derive(Debug, Clone, Copy, Default)]
-struct Top2 {
-    best: Cand,
-    second: Cand,
-    second_known: bool,
+/// Scores between two live clusters: their sum over scored member pairs and the count.
+#[derive(Debug, Clone, Copy)]
+struct Link {
+    to: usize,
+    sum: f32,
+    count: u32,
 }
 
-impl Top2 {
-    fn offer(&mut self, c: (f32, usize)) {
-        if ranks_above(c, self.best) {
-            self.second = self.best;
-            self.best = Some(c);
-        } else if ranks_above(c, self.second) {
-            self.second = Some(c);
-        }
+impl Link {
+    fn linkage(&self) -> f32 {
+        self.sum / self.count as f32
     }
 }
 
-/// Working state of the agglomeration over `n` boxes (flattened node indices; a cluster is
-/// named by one of its nodes).
-struct Agglomeration {
-    n: usize,
-    /// Sum of S over member pairs between clusters (row-major `n × n`).
-    sum: Vec<f32>,
-    /// Number of scored member pairs between clusters.
-    count: Vec<u32>,
+/// A possible merge of clusters `lo < hi` at average linkage `linkage`, packed into one
+/// integer whose order is the merge order: highest linkage first, ties to the lowest
+/// `(lo, hi)` (a strict total order, so the result never depends on the order candidates
+/// were seen in). Packing keeps the heap's comparisons and moves cheap.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+struct Candidate(u128);
+
+/// Box indices must fit in this many bits of a [`Candidate`].
+const INDEX_BITS: u32 = 48;
+const INDEX_MASK: u128 = (1 << INDEX_BITS) - 1;
+
+impl Candidate {
+    fn new(linkage: f32, a: usize, b: usize) -> Self {
+        // f32 bits mapped to an unsigned key with the same order as `f32::total_cmp`.
+        let bits = linkage.to_bits();
+        let key = if bits >> 31 == 1 {
+            !bits
+        } else {
+            bits | 1 << 31
+        };
+        let (lo, hi) = (a.min(b) as u128, a.max(b) as u128);
+        Candidate(
+            (key as u128) << (2 * INDEX_BITS)
+                | (!lo & INDEX_MASK) << INDEX_BITS
+                | (!hi & INDEX_MASK),
+        )
+    }
+
+    fn linkage(self) -> f32 {
+        let key = (self.0 >> (2 * INDEX_BITS)) as u32;
+        f32::from_bits(if key >> 31 == 1 {
+            key & !(1 << 31)
+        } else {
+            !key
+        })
+    }
+
+    fn lo(self) -> usize {
+        (!(self.0 >> INDEX_BITS) & INDEX_MASK) as usize
+    }
+
+    fn hi(self) -> usize {
+        (!self.0 & INDEX_MASK) as usize
+    }
+}
+
+/// End of a member list.
+const END: usize = usize::MAX;
+
+/// Working state of the agglomeration over the frame's boxes (a cluster is named by its
+/// smallest box index).
+struct Agglomeration<'a> {
+    scores: Scores<'a>,
+    threshold: f32,
     /// Camera bitset of each cluster (`words` u64 per cluster).
     cams: Vec<u64>,
     words: usize,
-    /// Clusters still alive, ascending.
-    alive: Vec<usize>,
-    /// Candidate partners of each live cluster, ascending: clusters with at least one member
-    /// pair scoring `S >= threshold` (an average can reach the threshold only then), so
-    /// searches touch a handful of clusters instead of all of them.
-    adj: Vec<Vec<usize>>,
-    members: Vec<Vec<usize>>,
-    top: Vec<Top2>,
-    threshold: f32,
+    alive: Vec<bool>,
+    /// Members as linked lists: `next[i]` follows box `i` in its cluster ([`END`] ends it),
+    /// `last[r]` is the last member of cluster `r` (so a merge is O(1)).
+    next: Vec<usize>,
+    last: Vec<usize>,
+    /// Merge partners of each live cluster, sorted by `to`: live clusters on other cameras
+    /// with at least one member pair scoring `S >= threshold` (an average can reach the
+    /// threshold only then), so a merge touches a handful of clusters instead of all.
+    links: Vec<Vec<Link>>,
+    /// Every candidate pair at its current linkage, plus stale entries (a dead cluster or an
+    /// outdated linkage) that are skipped when popped.
+    heap: BinaryHeap<Candidate>,
 }
 
-impl Agglomeration {
+impl Agglomeration<'_> {
     fn disjoint(&self, r: usize, s: usize) -> bool {
-        if self.words == 1 {
-            return self.cams[r] & self.cams[s] == 0;
-        }
+        let w = self.words;
         let (a, b) = (
-            &self.cams[r * self.words..(r + 1) * self.words],
-            &self.cams[s * self.words..(s + 1) * self.words],
+            &self.cams[r * w..(r + 1) * w],
+            &self.cams[s * w..(s + 1) * w],
         );
         a.iter().zip(b).all(|(x, y)| x & y == 0)
     }
 
-    /// Average linkage between live clusters `r != s` when they may merge (disjoint cameras,
-    /// at least one scored pair, linkage at or above the threshold).
-    fn linkage(&self, r: usize, s: usize) -> Option<f32> {
-        let k = r * self.n + s;
-        let c = self.count[k];
-        if c == 0 || !self.disjoint(r, s) {
+    /// The current linkage of live clusters `lo < hi`, when they are merge partners.
+    fn linkage(&self, lo: usize, hi: usize) -> Option<f32> {
+        if !(self.alive[lo] && self.alive[hi]) {
             return None;
         }
-        let l = self.sum[k] / c as f32;
-        (l >= self.threshold).then_some(l)
+        let links = &self.links[lo];
+        let k = links.binary_search_by_key(&hi, |l| l.to).ok()?;
+        Some(links[k].linkage())
     }
 
-    fn rescan(&mut self, r: usize) {
-        let mut t = Top2 {
-            second_known: true,
-            ..Top2::default()
-        };
-        for &s in &self.adj[r] {
-            if let Some(l) = self.linkage(r, s) {
-                t.offer((l, s));
+    /// The members of cluster `r`.
+    fn members(&self, r: usize) -> impl Iterator<Item = usize> + '_ {
+        std::iter::successors(Some(r), |&i| Some(self.next[i]).filter(|&j| j != END))
+    }
+
+    /// Sum and count of the scores between the members of clusters `x` and `k`.
+    fn raw(&self, x: usize, k: usize) -> (f32, u32) {
+        let (mut sum, mut count) = (0f32, 0u32);
+        for i in self.members(x) {
+            for j in self.members(k) {
+                if let Some(v) = self.scores.get(i, j) {
+                    sum += v;
+                    count += 1;
+                }
             }
         }
-        self.top[r] = t;
+        (sum, count)
     }
 
-    /// Merges cluster `s` into cluster `r` and refreshes the partner caches: only the
-    /// linkages to `r` and `s` changed (both replaced by the merged cluster, named `r`).
+    /// Merges cluster `s` into cluster `r`: the merged cluster's partners are the union of
+    /// both partner lists (minus those sharing a camera with it), each at the linkage of the
+    /// merged member set, and every partner's own list is updated to match.
     fn merge(&mut self, r: usize, s: usize) {
-        let n = self.n;
-        for &k in &self.alive {
-            let (rk, sk) = (r * n + k, s * n + k);
-            self.sum[rk] += self.sum[sk];
-            self.count[rk] += self.count[sk];
-            self.sum[k * n + r] = self.sum[rk];
-            self.count[k * n + r] = self.count[rk];
+        let w = self.words;
+        for i in 0..w {
+            self.cams[r * w + i] |= self.cams[s * w + i];
         }
-        for w in 0..self.words {
-            self.cams[r * self.words + w] |= self.cams[s * self.words + w];
-        }
-        let moved = std::mem::take(&mut self.members[s]);
-        self.members[r].extend(moved);
-        if let Ok(pos) = self.alive.binary_search(&s) {
-            self.alive.remove(pos);
-        }
-        self.top[s] = Top2::default();
-        // Candidate lists: `s` becomes `r` everywhere; `r` gets the union.
-        let adj_s = std::mem::take(&mut self.adj[s]);
-        for &k in &adj_s {
-            if k == r {
+        let old_r = std::mem::take(&mut self.links[r]);
+        let old_s = std::mem::take(&mut self.links[s]);
+        let mut merged = Vec::with_capacity(old_r.len() + old_s.len());
+        let (mut x, mut y) = (0, 0);
+        loop {
+            let (k, sum, count) = match (old_r.get(x), old_s.get(y)) {
+                (None, None) => break,
+                (Some(a), Some(b)) if a.to == b.to => {
+                    (x, y) = (x + 1, y + 1);
+                    (a.to, a.sum + b.sum, a.count + b.count)
+                }
+                (Some(a), b) if b.is_none_or(|b| a.to < b.to) => {
+                    x += 1;
+                    if a.to == s || !self.disjoint(r, a.to) {
+                        (a.to, 0.0, 0)
+                    } else {
+                        let (sum, count) = self.raw(s, a.to);
+                        (a.to, a.sum + sum, a.count + count)
+                    }
+                }
+                (_, Some(b)) => {
+                    y += 1;
+                    if b.to == r || !self.disjoint(r, b.to) {
+                        (b.to, 0.0, 0)
+                    } else {
+                        let (sum, count) = self.raw(r, b.to);
+                        (b.to, b.sum + sum, b.count + count)
+                    }
+                }
+                (Some(_), None) => unreachable!("covered by the arm above"),
+            };
+            if k == r || k == s {
                 continue;
             }
-            let a = &mut self.adj[k];
-            if let Ok(pos) = a.binary_search(&s) {
-                a.remove(pos);
+            // `k` drops `s`; it keeps `r`, at the new linkage, only while it may still merge.
+            let keep = count > 0 && self.disjoint(r, k);
+            let theirs = &mut self.links[k];
+            if let Ok(pos) = theirs.binary_search_by_key(&s, |l| l.to) {
+                theirs.remove(pos);
             }
-            if let Err(pos) = a.binary_search(&r) {
-                a.insert(pos, r);
+            let link = Link { to: r, sum, count };
+            match (theirs.binary_search_by_key(&r, |l| l.to), keep) {
+                (Ok(pos), true) => theirs[pos] = link,
+                (Ok(pos), false) => {
+                    theirs.remove(pos);
+                }
+                (Err(pos), true) => theirs.insert(pos, link),
+                (Err(_), false) => {}
+            }
+            if keep {
+                let l = link.linkage();
+                if l >= self.threshold {
+                    self.heap.push(Candidate::new(l, r, k));
+                }
+                merged.push(Link { to: k, sum, count });
             }
         }
-        let mut adj_r = std::mem::take(&mut self.adj[r]);
-        adj_r.extend(adj_s);
-        adj_r.sort_unstable();
-        adj_r.dedup();
-        adj_r.retain(|&k| k != r && k != s);
-        self.adj[r] = adj_r;
-        self.rescan(r);
-        let gone = |c: Cand| matches!(c, Some((_, p)) if p == r || p == s);
-        // Only neighbours of `r` or `s` can have had them as candidates.
-        for idx in 0..self.adj[r].len() {
-            let k = self.adj[r][idx];
-            let new = self.linkage(k, r).map(|l| (l, r));
-            let mut t = self.top[k];
-            if gone(t.best) {
-                if !t.second_known || gone(t.second) {
-                    self.rescan(k);
-                    continue;
-                }
-                // The old second now leads the unchanged candidates.
-                match new {
-                    Some(c) if ranks_above(c, t.second) => t.best = Some(c),
-                    _ => {
-                        t.best = t.second;
-                        // Candidates below the old second may outrank `new`: unknown.
-                        t.second_known = false;
-                    }
-                }
-            } else if gone(t.second) {
-                match new {
-                    Some(c) if ranks_above(c, t.best) => {
-                        t.second = t.best;
-                        t.best = Some(c);
-                        t.second_known = true;
-                    }
-                    _ => t.second_known = false,
-                }
-            } else if let Some(c) = new {
-                if ranks_above(c, t.best) {
-                    t.second = t.best;
-                    t.best = Some(c);
-                    t.second_known = true;
-                } else if t.second_known && ranks_above(c, t.second) {
-                    t.second = Some(c);
-                }
-            }
-            self.top[k] = t;
-        }
+        self.links[r] = merged;
+        self.next[self.last[r]] = s;
+        self.last[r] = self.last[s];
+        self.alive[s] = false;
     }
 }
 
@@ -222,9 +288,10 @@ impl Agglomeration {
 ///
 /// `view_sizes[c]` is the number of boxes of camera `c` (0 for cameras without boxes or
 /// that did not report); `pairs` holds the S matrices of camera pairs (`cam_a != cam_b`,
-/// scores of shape `[view_sizes[cam_a], view_sizes[cam_b]]`; pairs with another shape are
-/// ignored). Box pairs without a score never link directly. Every box ends in exactly one
-/// identity. See the module documentation for the scheme and the confidence.
+/// scores of shape `[view_sizes[cam_a], view_sizes[cam_b]]`; pairs with another shape, and
+/// repeats of a camera pair, are ignored with a warning). Box pairs without a score never
+/// link directly. Every box ends in exactly one identity. See the module documentation for
+/// the scheme and the confidence.
 pub fn build_identities(view_sizes: &[usize], pairs: &[ViewPair], threshold: f32) -> Vec<Identity> {
     let mut offsets = Vec::with_capacity(view_sizes.len() + 1);
     let mut total = 0usize;
@@ -237,133 +304,119 @@ pub fn build_identities(view_sizes: &[usize], pairs: &[ViewPair], threshold: f32
     if n == 0 {
         return Vec::new();
     }
+    let cameras = view_sizes.len();
     let cam_of: Vec<usize> = view_sizes
         .iter()
         .enumerate()
         .flat_map(|(c, &s)| std::iter::repeat_n(c, s))
         .collect();
-    let words = view_sizes.len().div_ceil(64).max(1);
+    let words = cameras.div_ceil(64).max(1);
     let mut cams = vec![0u64; n * words];
     for (i, &c) in cam_of.iter().enumerate() {
         cams[i * words + c / 64] |= 1u64 << (c % 64);
     }
-    let mut sum = vec![0f32; n * n];
-    let mut count = vec![0u32; n * n];
-    // Highest S of each box to any box of another camera (for singleton confidence).
-    let mut max_s = vec![f32::NEG_INFINITY; n];
-    let mut adj: Vec<Vec<usize>> = vec![Vec::new(); n];
-    for p in pairs {
-        let (ca, cb) = (p.cam_a, p.cam_b);
-        let s = &p.matching.scores;
+    let mut table = vec![None; cameras * cameras];
+    let mut links: Vec<Vec<Link>> = vec![Vec::new(); n];
+    let mut candidates = Vec::new();
+    for (p, pair) in pairs.iter().enumerate() {
+        let (ca, cb) = (pair.cam_a, pair.cam_b);
+        let s = &pair.matching.scores;
         if ca == cb
-            || ca >= view_sizes.len()
-            || cb >= view_sizes.len()
+            || ca >= cameras
+            || cb >= cameras
             || s.dim() != (view_sizes[ca], view_sizes[cb])
+            || table[ca * cameras + cb].is_some()
         {
-            tracing::warn!(cam_a = ca, cam_b = cb, "ignoring inconsistent camera pair");
+            tracing::warn!(
+                cam_a = ca,
+                cam_b = cb,
+                "ignoring inconsistent or repeated camera pair"
+            );
             continue;
         }
-        for ((a, b), &v) in s.indexed_iter() {
-            if !v.is_finite() {
-                continue;
-            }
-            let (i, j) = (offsets[ca] + a, offsets[cb] + b);
-            sum[i * n + j] += v;
-            count[i * n + j] += 1;
-            sum[j * n + i] += v;
-            count[j * n + i] += 1;
-            max_s[i] = max_s[i].max(v);
-            max_s[j] = max_s[j].max(v);
-            if v >= threshold {
-                adj[i].push(j);
-                adj[j].push(i);
-            }
+        table[ca * cameras + cb] = Some((p, false));
+        table[cb * cameras + ca] = Some((p, true));
+        let cols = s.ncols();
+        if cols == 0 {
+            continue;
         }
-    }
-    for a in &mut adj {
-        a.sort_unstable();
-        a.dedup();
-    }
-    let mut ag = Agglomeration {
-        n,
-        sum,
-        count,
-        cams,
-        words,
-        alive: (0..n).collect(),
-        adj,
-        members: (0..n).map(|i| vec![i]).collect(),
-        top: vec![Top2::default(); n],
-        threshold,
-    };
-    for r in 0..n {
-        ag.rescan(r);
-    }
-    loop {
-        // The globally best pair: highest linkage, ties to the lowest (lo, hi) node pair.
-        let mut pick: Option<(f32, usize, usize)> = None;
-        for &r in &ag.alive {
-            if let Some((l, s)) = ag.top[r].best {
-                let (lo, hi) = (r.min(s), r.max(s));
-                let better = match pick {
-                    None => true,
-                    Some((pl, pr, ps)) => l > pl || (l == pl && (lo, hi) < (pr, ps)),
-                };
-                if better {
-                    pick = Some((l, lo, hi));
+        let copy: Vec<f32>;
+        let data = match s.as_slice() {
+            Some(d) => d,
+            None => {
+                copy = s.iter().copied().collect();
+                &copy
+            }
+        };
+        for (a, row) in data.chunks_exact(cols).enumerate() {
+            let i = offsets[ca] + a;
+            for (b, &v) in row.iter().enumerate() {
+                // NaN fails the comparison; infinities are no evidence either.
+                if v >= threshold && v.is_finite() {
+                    let j = offsets[cb] + b;
+                    links[i].push(Link {
+                        to: j,
+                        sum: v,
+                        count: 1,
+                    });
+                    links[j].push(Link {
+                        to: i,
+                        sum: v,
+                        count: 1,
+                    });
+                    candidates.push(Candidate::new(v, i, j));
                 }
             }
         }
-        match pick {
-            Some((_, r, s)) => ag.merge(r, s),
-            None => break,
+    }
+    for l in &mut links {
+        l.sort_unstable_by_key(|l| l.to);
+    }
+    let mut ag = Agglomeration {
+        scores: Scores {
+            pairs,
+            offsets,
+            cam_of,
+            cameras,
+            table,
+        },
+        threshold,
+        cams,
+        words,
+        alive: vec![true; n],
+        next: vec![END; n],
+        last: (0..n).collect(),
+        links,
+        heap: BinaryHeap::from(candidates),
+    };
+    while let Some(c) = ag.heap.pop() {
+        let (lo, hi) = (c.lo(), c.hi());
+        if ag.linkage(lo, hi) == Some(c.linkage()) {
+            ag.merge(lo, hi);
         }
     }
-    let alive = std::mem::take(&mut ag.alive);
     // Identities, ordered by their first member (camera, index).
-    let mut clusters: Vec<Vec<usize>> = alive
-        .into_iter()
+    let mut clusters: Vec<Vec<usize>> = (0..n)
+        .filter(|&r| ag.alive[r])
         .map(|r| {
-            let mut m = std::mem::take(&mut ag.members[r]);
+            let mut m: Vec<usize> = ag.members(r).collect();
             m.sort_unstable();
             m
         })
         .collect();
     clusters.sort_unstable_by_key(|m| m[0]);
-    // The original (unmerged) scores between two boxes.
-    let pair_score = |i: usize, j: usize| -> Option<f32> {
-        let (a, b) = (cam_of[i], cam_of[j]);
-        pairs
-            .iter()
-            .find_map(|p| {
-                if (p.cam_a, p.cam_b) == (a, b) {
-                    p.matching
-                        .scores
-                        .get((i - offsets[a], j - offsets[b]))
-                        .copied()
-                } else if (p.cam_a, p.cam_b) == (b, a) {
-                    p.matching
-                        .scores
-                        .get((j - offsets[b], i - offsets[a]))
-                        .copied()
-                } else {
-                    None
-                }
-            })
-            .filter(|v| v.is_finite())
-    };
+    let scores = &ag.scores;
     clusters
         .into_iter()
         .enumerate()
         .map(|(id, m)| {
             let confidence = if m.len() == 1 {
-                let s = max_s[m[0]];
-                if s.is_finite() { 1.0 - s } else { 1.0 }
+                scores.best(m[0]).map_or(1.0, |s| 1.0 - s)
             } else {
                 let (mut acc, mut k) = (0f32, 0u32);
                 for (x, &i) in m.iter().enumerate() {
                     for &j in &m[x + 1..] {
-                        if let Some(v) = pair_score(i, j) {
+                        if let Some(v) = scores.get(i, j) {
                             acc += v;
                             k += 1;
                         }
@@ -376,7 +429,7 @@ pub fn build_identities(view_sizes: &[usize], pairs: &[ViewPair], threshold: f32
                 confidence: confidence.clamp(0.0, 1.0),
                 members: m
                     .iter()
-                    .map(|&i| (cam_of[i], i - offsets[cam_of[i]]))
+                    .map(|&i| (scores.cam_of[i], i - scores.offsets[scores.cam_of[i]]))
                     .collect(),
             }
         })

@@ -2,8 +2,10 @@
 //! distances, Hungarian matching and global identities.
 
 pub mod association;
+pub mod embeddings;
 pub mod identity;
 pub mod matching;
 pub mod types;
 
+pub use embeddings::FrameEmbeddings;
 pub use types::{Batch, CameraSpec, Detection, Frame, SceneSpec};

@@ -168,7 +168,7 @@ fn run_frame<E: Encoder>(
 /// The matching part of one frame: pairs only (the reference's work) or pairs + identities.
 fn match_frame(
     frame: &Frame,
-    embeddings: Vec<Option<ndarray::Array2<f32>>>,
+    embeddings: crate::core::FrameEmbeddings,
     cfg: &AssociationConfig,
     identities: bool,
 ) -> Vec<ViewPair> {
