@@ -316,7 +316,6 @@ pub fn build_identities(view_sizes: &[usize], pairs: &[ViewPair], threshold: f32
         cams[i * words + c / 64] |= 1u64 << (c % 64);
     }
     let mut table = vec![None; cameras * cameras];
-    let mut links: Vec<Vec<Link>> = vec![Vec::new(); n];
     let mut candidates = Vec::new();
     for (p, pair) in pairs.iter().enumerate() {
         let (ca, cb) = (pair.cam_a, pair.cam_b);
@@ -350,24 +349,52 @@ pub fn build_identities(view_sizes: &[usize], pairs: &[ViewPair], threshold: f32
         };
         for (a, row) in data.chunks_exact(cols).enumerate() {
             let i = offsets[ca] + a;
-            for (b, &v) in row.iter().enumerate() {
-                // NaN fails the comparison; infinities are no evidence either.
-                if v >= threshold && v.is_finite() {
-                    let j = offsets[cb] + b;
-                    links[i].push(Link {
-                        to: j,
-                        sum: v,
-                        count: 1,
-                    });
-                    links[j].push(Link {
-                        to: i,
-                        sum: v,
-                        count: 1,
-                    });
-                    candidates.push(Candidate::new(v, i, j));
+            // A branch-free bit mask per 16 scores (vector code), then only the set bits.
+            // NaN fails the comparison; infinities are no evidence either.
+            let mut push = |b: usize| {
+                let v = row[b];
+                if v.is_finite() {
+                    candidates.push(Candidate::new(v, i, offsets[cb] + b));
+                }
+            };
+            let mut chunks = row.chunks_exact(16);
+            for (c, chunk) in (&mut chunks).enumerate() {
+                let mut mask = 0u32;
+                for (k, &v) in chunk.iter().enumerate() {
+                    mask |= u32::from(v >= threshold) << k;
+                }
+                while mask != 0 {
+                    push(c * 16 + mask.trailing_zeros() as usize);
+                    mask &= mask - 1;
+                }
+            }
+            let done = cols - chunks.remainder().len();
+            for (k, &v) in chunks.remainder().iter().enumerate() {
+                if v >= threshold {
+                    push(done + k);
                 }
             }
         }
+    }
+    // Every box's links, allocated once at their final size.
+    let mut degree = vec![0usize; n];
+    for c in &candidates {
+        degree[c.lo()] += 1;
+        degree[c.hi()] += 1;
+    }
+    let mut links: Vec<Vec<Link>> = degree.into_iter().map(Vec::with_capacity).collect();
+    for c in &candidates {
+        let (lo, hi, v) = (c.lo(), c.hi(), c.linkage());
+        links[lo].push(Link {
+            to: hi,
+            sum: v,
+            count: 1,
+        });
+        links[hi].push(Link {
+            to: lo,
+            sum: v,
+            count: 1,
+        });
     }
     for l in &mut links {
         l.sort_unstable_by_key(|l| l.to);
@@ -472,6 +499,7 @@ mod tests {
     use super::*;
     use crate::core::matching::hungarian;
     use ndarray::{Array2, array};
+    use proptest::prelude::*;
 
     fn pair(cam_a: usize, cam_b: usize, scores: Array2<f32>, threshold: f32) -> ViewPair {
         let matches = hungarian(scores.mapv(|v| 1.0 - v).view())
@@ -683,32 +711,50 @@ mod tests {
             .collect()
     }
 
-    proptest::proptest! {
+    /// Scores on a 1/64 grid: every partial sum is exact in f32, so both implementations
+    /// see identical linkages (and identical ties).
+    fn check_against_naive(sizes: &[usize], raw: &[u8], t: u8) -> Result<(), TestCaseError> {
+        let mut k = 0;
+        let mut pairs = Vec::new();
+        for a in 0..sizes.len() {
+            for b in a + 1..sizes.len() {
+                if sizes[a] == 0 || sizes[b] == 0 {
+                    continue;
+                }
+                let s = Array2::from_shape_fn((sizes[a], sizes[b]), |_| {
+                    k += 1;
+                    raw[k % raw.len()] as f32 / 64.0
+                });
+                pairs.push(pair(a, b, s, 0.0));
+            }
+        }
+        let threshold = t as f32 / 64.0;
+        let got = members(&build_identities(sizes, &pairs, threshold));
+        prop_assert_eq!(got, naive(sizes, &pairs, threshold));
+        Ok(())
+    }
+
+    proptest! {
         #[test]
-        fn cached_agglomeration_equals_naive(
+        fn sparse_agglomeration_equals_naive(
             sizes in proptest::collection::vec(0usize..7, 2..6),
             raw in proptest::collection::vec(0u8..=64, 400),
             t in 0u8..=64,
         ) {
-            // Scores on a 1/64 grid: every partial sum is exact in f32, so both
-            // implementations see identical linkages (and identical ties).
-            let mut k = 0;
-            let mut pairs = Vec::new();
-            for a in 0..sizes.len() {
-                for b in a + 1..sizes.len() {
-                    if sizes[a] == 0 || sizes[b] == 0 {
-                        continue;
-                    }
-                    let s = Array2::from_shape_fn((sizes[a], sizes[b]), |_| {
-                        k += 1;
-                        raw[k % raw.len()] as f32 / 64.0
-                    });
-                    pairs.push(pair(a, b, s, 0.0));
-                }
-            }
-            let threshold = t as f32 / 64.0;
-            let got = members(&build_identities(&sizes, &pairs, threshold));
-            proptest::prop_assert_eq!(got, naive(&sizes, &pairs, threshold));
+            check_against_naive(&sizes, &raw, t)?;
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(32))]
+        /// Views wider than the 16-score scan blocks.
+        #[test]
+        fn wide_views_equal_naive(
+            sizes in proptest::collection::vec(0usize..40, 2..4),
+            raw in proptest::collection::vec(0u8..=64, 997),
+            t in 16u8..=64,
+        ) {
+            check_against_naive(&sizes, &raw, t)?;
         }
     }
 }
