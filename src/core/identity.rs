@@ -25,7 +25,7 @@
 //! max-heap at their current linkage; a merge recomputes only the merged cluster's links
 //! (the two old links added up, or one old link plus the raw member scores it lacked) and
 //! pushes them, and outdated heap entries are skipped when popped. A WILDTRACK-sized frame
-//! (7 × 35 boxes) takes well under a tenth of a millisecond (BENCHMARKS.md).
+//! (7 × 35 boxes) takes about a tenth of a millisecond on one core (BENCHMARKS.md).
 //!
 //! # Confidence
 //! A cluster of two or more boxes: the mean `S` over all its member pairs (its internal
@@ -109,7 +109,8 @@ impl Link {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 struct Candidate(u128);
 
-/// Box indices must fit in this many bits of a [`Candidate`].
+/// Box indices must fit in this many bits of a [`Candidate`] (a frame of 2^48 boxes could
+/// not be held in memory anyway).
 const INDEX_BITS: u32 = 48;
 const INDEX_MASK: u128 = (1 << INDEX_BITS) - 1;
 
