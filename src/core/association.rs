@@ -134,13 +134,7 @@ pub fn embed_frame(
     } else {
         encoder.embed(&boxes, &cameras)?
     };
-    if all.nrows() != total {
-        return Err(Error::Runtime(format!(
-            "encoder returned {} embeddings for {} boxes",
-            all.nrows(),
-            total
-        )));
-    }
+    // `FrameEmbeddings::new` rejects an encoder that returns the wrong number of rows.
     let rows: Vec<Option<usize>> = frame
         .views
         .iter()

@@ -340,14 +340,8 @@ pub fn build_identities(view_sizes: &[usize], pairs: &[ViewPair], threshold: f32
         if cols == 0 {
             continue;
         }
-        let copy: Vec<f32>;
-        let data = match s.as_slice() {
-            Some(d) => d,
-            None => {
-                copy = s.iter().copied().collect();
-                &copy
-            }
-        };
+        let s = s.as_standard_layout();
+        let data = s.as_slice().expect("standard layout is contiguous");
         for (a, row) in data.chunks_exact(cols).enumerate() {
             let i = offsets[ca] + a;
             // A branch-free bit mask per 16 scores (vector code), then only the set bits.

@@ -147,14 +147,8 @@ pub fn all_pairs_distances(x: ArrayView2<f32>, views: &[Range<usize>]) -> Vec<Ar
     let span = views[k - 1].end - base;
     let mut gram = vec![0f32; span * span];
     gram_halves(flat, dim, views, base, &mut gram, span);
-    let norms: Vec<f32> = if dim == 0 {
-        vec![0.0; span]
-    } else {
-        flat[base * dim..(base + span) * dim]
-            .chunks_exact(dim)
-            .map(sq_norm)
-            .collect()
-    };
+    let norms = row_sq_norms(x.slice(ndarray::s![base..base + span, ..]));
+    let norms = norms.as_slice().expect("freshly collected");
     let mut out = Vec::with_capacity(k * (k - 1) / 2);
     for (a, ra) in views.iter().enumerate() {
         for rb in &views[a + 1..] {
@@ -256,14 +250,9 @@ fn gram_block(
 /// Largest finite value of `m` (0 when there is none). NaN and infinities are skipped so
 /// that one bad entry cannot turn the whole matrix into NaN.
 fn finite_max(m: &Array2<f32>) -> f32 {
-    match m.as_slice() {
-        Some(flat) => finite_range(flat).map_or(0.0, |(_, hi)| hi.max(0.0)),
-        None => m
-            .iter()
-            .copied()
-            .filter(|v| v.is_finite())
-            .fold(0.0f32, f32::max),
-    }
+    let m = m.as_standard_layout();
+    let flat = m.as_slice().expect("standard layout is contiguous");
+    finite_range(flat).map_or(0.0, |(_, hi)| hi.max(0.0))
 }
 
 /// Smallest and largest finite values of `values` (`None` when there is none).
