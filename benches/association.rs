@@ -180,10 +180,13 @@ fn bench<M: Measurement>(c: &mut Criterion<M>, group: &str) {
         })
     });
     g.bench_function("identities", |b| {
-        b.iter(|| black_box(build_identities(&sizes, black_box(&pairs), cfg.threshold)))
+        b.iter(|| black_box(build_identities(&sizes, black_box(&pairs), &cfg.identity)))
     });
-    for mode in [Mode::Pairwise, Mode::Global] {
-        let cfg = AssociationConfig { mode, ..cfg };
+    for mode in [Mode::Pairwise, Mode::Identities] {
+        let cfg = AssociationConfig {
+            mode,
+            ..cfg.clone()
+        };
         // A fresh copy of the embeddings right before each call: in cache, as the encoder's
         // output is in the server (a batch of copies made up front would be measured cold).
         g.bench_function(format!("associate_frame_{mode}"), |b| {

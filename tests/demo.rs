@@ -132,19 +132,16 @@ async fn running_accuracy_over_the_network_equals_eval_global_mode() {
         "running pairs grow"
     );
 
-    // The same frames through the evaluation driver, in global mode.
+    // The same frames through the evaluation driver, scoring the identities with the
+    // model's own settings (what the server uses).
     let recording = simulate(&sim).unwrap();
     let mut encoder = OnnxEncoder::load(&model).unwrap();
-    let (expected, _) = evaluate(
-        &mut encoder,
-        &recording,
-        &AssociationConfig {
-            threshold: THRESHOLD,
-            alpha: 0.1,
-            mode: Mode::Global,
-        },
-    )
-    .unwrap();
+    let cfg = AssociationConfig {
+        mode: Mode::Identities,
+        ..encoder.metadata().association_config()
+    };
+    assert_eq!(cfg.threshold, THRESHOLD);
+    let (expected, _) = evaluate(&mut encoder, &recording, &cfg).unwrap();
     let got = summary.metrics;
     assert_eq!(
         (

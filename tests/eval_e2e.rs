@@ -118,7 +118,7 @@ fn eval_dump_and_recompute_give_the_same_table() {
         "--report",
         &s(&report),
     ]);
-    assert!(table.contains("pairwise t=0.30"), "{table}");
+    assert!(table.contains("pairwise S>=0.30"), "{table}");
     let again = crossview(&["eval", "--from-dump", &s(&dump)]);
     assert_eq!(numbers(&table), numbers(&again), "\n{table}\n{again}");
 
@@ -153,7 +153,7 @@ fn eval_dump_and_recompute_give_the_same_table() {
 }
 
 #[test]
-fn compare_modes_and_associate_cover_every_box() {
+fn pairwise_and_identity_rows_and_associate_cover_every_box() {
     let dir = tempfile::tempdir().unwrap();
     let model = dir.path().join("m.onnx");
     let data = dir.path().join("gt.jsonl");
@@ -169,15 +169,16 @@ fn compare_modes_and_associate_cover_every_box() {
         &s(&model),
         "--data",
         &s(&data),
-        "--compare-modes",
         "--sweep",
         "0.2",
     ]);
     for label in [
-        "pairwise t=0.40",
-        "global t=0.40",
-        "pairwise t=0.20",
-        "global t=0.20",
+        "pairwise S>=0.40",
+        "identities t=0.40",
+        "pairwise S>=0.20",
+        "identities t=0.20",
+        "frames with every identity right",
+        "identity precision by confidence",
     ] {
         assert!(table.contains(label), "{table}");
     }
@@ -185,6 +186,7 @@ fn compare_modes_and_associate_cover_every_box() {
     let rows: Vec<Vec<&str>> = table
         .lines()
         .skip(1)
+        .take(2)
         .map(|l| l.split_whitespace().collect())
         .collect();
     assert_eq!(rows[0][2..4], rows[1][2..4]);
@@ -198,7 +200,7 @@ fn compare_modes_and_associate_cover_every_box() {
         "--out",
         &s(&out),
         "--mode",
-        "global",
+        "identities",
     ]);
     let text = std::fs::read_to_string(&out).unwrap();
     let lines: Vec<serde_json::Value> = text
@@ -221,21 +223,23 @@ fn compare_modes_and_associate_cover_every_box() {
         }
         assert_eq!(seen.len(), frame.num_boxes());
     }
-    // Global mode is a valid value; a bad one is rejected by the CLI.
+    // A bad mode is rejected by the CLI.
     let bad = Command::new(env!("CARGO_BIN_EXE_crossview"))
         .args([
-            "eval",
+            "associate",
             "--model",
             &s(&model),
             "--data",
             &s(&data),
+            "--out",
+            &s(&out),
             "--mode",
             "bogus",
         ])
         .output()
         .unwrap();
     assert!(!bad.status.success());
-    let _ = Mode::Global;
+    assert_eq!("identities".parse::<Mode>().unwrap(), Mode::Identities);
 }
 
 #[test]

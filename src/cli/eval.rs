@@ -25,19 +25,23 @@ pub struct EvalArgs {
     /// Recording with ground-truth ids on every box (SPEC §7 JSONL).
     #[arg(long, required_unless_present = "from_dump")]
     pub data: Option<PathBuf>,
-    /// Confidence threshold (default: the model's `crossview.threshold`).
+    /// SPEC §3 threshold on `S` for the pairwise row (default: the model's
+    /// `crossview.threshold`).
     #[arg(long)]
     pub threshold: Option<f32>,
+    /// Threshold on the identity confidence for the calibrated and identity rows (default:
+    /// the model's `crossview.match_threshold`, else its `crossview.threshold`).
+    #[arg(long)]
+    pub match_threshold: Option<f32>,
     /// Appearance weight (default: the model's `crossview.alpha`; used only with appearance).
     #[arg(long)]
     pub alpha: Option<f32>,
-    /// `pairwise` (SPEC §3) or `global` (matches derived from global identities).
-    #[arg(long, default_value = "pairwise")]
-    pub mode: Mode,
-    /// Also evaluate the other mode on the same embeddings and print both rows.
-    #[arg(long)]
-    pub compare_modes: bool,
-    /// Extra thresholds to sweep (comma-separated), each in every evaluated mode.
+    /// Identity weights (for studies; defaults in `core::identity`): per agreeing third
+    /// camera, per dissenting third camera, and per contradicted box pair.
+    #[arg(long, num_args = 3, value_names = ["SUPPORT", "DISSENT", "CONFLICT"])]
+    pub identity_weights: Option<Vec<f32>>,
+    /// Extra thresholds to sweep (comma-separated): pairwise rows on `S`, and calibrated and
+    /// identity rows on the identity confidence.
     #[arg(long, value_delimiter = ',')]
     pub sweep: Vec<f32>,
     /// Write a JSON report (rates as fractions in [0, 1]).
@@ -47,7 +51,7 @@ pub struct EvalArgs {
     #[arg(long)]
     pub dump_pairs: Option<PathBuf>,
     /// Recompute the table from a pair dump alone (no model, no data).
-    #[arg(long, conflicts_with_all = ["model", "data", "dump_pairs", "compare_modes", "sweep"])]
+    #[arg(long, conflicts_with_all = ["model", "data", "dump_pairs", "sweep"])]
     pub from_dump: Option<PathBuf>,
 }
 
@@ -63,13 +67,17 @@ pub struct AssociateArgs {
     /// Output JSONL: one line per frame with its identities.
     #[arg(long)]
     pub out: PathBuf,
-    /// Confidence threshold (default: the model's).
+    /// SPEC §3 threshold on `S` for the pairwise matches (default: the model's).
     #[arg(long)]
     pub threshold: Option<f32>,
+    /// Threshold on the identity confidence (default: the model's).
+    #[arg(long)]
+    pub match_threshold: Option<f32>,
     /// Appearance weight (default: the model's).
     #[arg(long)]
     pub alpha: Option<f32>,
-    /// Which pairwise matches to write next to the identities.
+    /// Which pairwise matches to write next to the identities: `pairwise` (SPEC §3),
+    /// `calibrated` or `identities`.
     #[arg(long, default_value = "pairwise")]
     pub mode: Mode,
 }
@@ -114,30 +122,55 @@ fn check_alpha(a: f32) -> anyhow::Result<f32> {
 }
 
 fn label(mode: Mode, threshold: f32) -> String {
-    format!("{mode} t={threshold:.2}")
+    match mode {
+        Mode::Pairwise => format!("pairwise S>={threshold:.2}"),
+        Mode::Calibrated => format!("calibrated P>={threshold:.2}"),
+        Mode::Identities => format!("identities t={threshold:.2}"),
+    }
+}
+
+/// The association settings of `meta` with the command line's overrides.
+fn config(
+    meta: &ModelMetadata,
+    threshold: Option<f32>,
+    match_threshold: Option<f32>,
+    alpha: Option<f32>,
+) -> anyhow::Result<AssociationConfig> {
+    let mut cfg = meta.association_config();
+    cfg.threshold = check_threshold(threshold.unwrap_or(cfg.threshold))?;
+    cfg.identity.threshold = check_threshold(match_threshold.unwrap_or(cfg.identity.threshold))?;
+    cfg.alpha = check_alpha(alpha.unwrap_or(cfg.alpha))?;
+    Ok(cfg)
 }
 
 /// Runs `crossview eval`.
 pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     if let Some(dump) = &args.from_dump {
         let records = read_dump(dump)?;
-        let metrics = compute_metrics(&records);
         let name = dump.display().to_string();
-        print!(
-            "{}",
-            format_table(&[TableRow {
-                label: name.clone(),
-                metrics
-            }])
-        );
+        let mut rows = vec![TableRow {
+            label: name.clone(),
+            metrics: compute_metrics(&records),
+        }];
+        let identity: Option<Vec<_>> = records.iter().map(|r| r.as_identities()).collect();
+        if let Some(identity) = identity.filter(|r| !r.is_empty()) {
+            rows.push(TableRow {
+                label: format!("{name} (identities)"),
+                metrics: compute_metrics(&identity),
+            });
+        }
+        print!("{}", format_table(&rows));
         if let Some(path) = &args.report {
             let mut report = EvalReport::new("", &name, &[]);
-            report.runs.push(crate::eval::report::ReportRun {
-                mode: "from-dump".into(),
-                threshold: None,
-                alpha: None,
-                metrics,
-            });
+            for (row, mode) in rows.iter().zip(["from-dump", "from-dump-identities"]) {
+                report.runs.push(crate::eval::report::ReportRun {
+                    mode: mode.into(),
+                    threshold: None,
+                    alpha: None,
+                    metrics: row.metrics,
+                    identities: None,
+                });
+            }
             report.write(path)?;
         }
         return Ok(());
@@ -149,19 +182,32 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let meta = encoder.metadata().clone();
     let recording = read_recording(data)?;
     check_scene(&recording.scene, &meta)?;
-    let threshold = check_threshold(args.threshold.unwrap_or(meta.threshold))?;
-    let alpha = check_alpha(args.alpha.unwrap_or(meta.alpha))?;
-    let mut modes = vec![args.mode];
-    if args.compare_modes {
-        modes.push(match args.mode {
-            Mode::Pairwise => Mode::Global,
-            Mode::Global => Mode::Pairwise,
-        });
+    let mut base = config(&meta, args.threshold, args.match_threshold, args.alpha)?;
+    if let Some(w) = &args.identity_weights {
+        if w.iter().any(|v| !v.is_finite() || *v < 0.0) {
+            bail!("--identity-weights must be finite and non-negative, got {w:?}");
+        }
+        (
+            base.identity.support_bonus,
+            base.identity.dissent_penalty,
+            base.identity.conflict_penalty,
+        ) = (w[0], w[1], w[2]);
     }
-    let mut settings = Vec::new();
-    for t in std::iter::once(threshold).chain(args.sweep.iter().copied()) {
+    // Rows: SPEC §3 pairwise (what the paper's metrics mean), pairwise on the calibrated
+    // confidence when the model has one, and the identities the service returns.
+    let mut settings = vec![(Mode::Pairwise, base.threshold)];
+    if base.identity.calibration.is_some() {
+        settings.push((Mode::Calibrated, base.identity.threshold));
+    }
+    settings.push((Mode::Identities, base.identity.threshold));
+    for &t in &args.sweep {
         let t = check_threshold(t)?;
-        for &m in &modes {
+        let modes: &[Mode] = if base.identity.calibration.is_some() {
+            &[Mode::Pairwise, Mode::Calibrated, Mode::Identities]
+        } else {
+            &[Mode::Pairwise, Mode::Identities]
+        };
+        for &m in modes {
             if !settings.contains(&(m, t)) {
                 settings.push((m, t));
             }
@@ -170,9 +216,10 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     tracing::info!(
         frames = recording.frames.len(),
         settings = settings.len(),
+        calibrated = base.identity.calibration.is_some(),
         "evaluating"
     );
-    let runs = evaluate_settings(&mut encoder, &recording, alpha, &settings)?;
+    let runs = evaluate_settings(&mut encoder, &recording, &base, &settings)?;
     let rows: Vec<TableRow> = runs
         .iter()
         .map(|r| TableRow {
@@ -181,6 +228,9 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         })
         .collect();
     print!("{}", format_table(&rows));
+    if let Some(r) = runs.iter().find(|r| r.mode == Mode::Identities) {
+        print!("{}", r.identities.format());
+    }
     if let Some(path) = &args.report {
         EvalReport::new(
             &model.display().to_string(),
@@ -236,11 +286,8 @@ pub fn run_associate(args: AssociateArgs) -> anyhow::Result<()> {
     let recording = read_recording(&args.data)?;
     let scene = &recording.scene;
     check_scene(scene, &meta)?;
-    let cfg = AssociationConfig {
-        threshold: check_threshold(args.threshold.unwrap_or(meta.threshold))?,
-        alpha: check_alpha(args.alpha.unwrap_or(meta.alpha))?,
-        mode: args.mode,
-    };
+    let mut cfg = config(&meta, args.threshold, args.match_threshold, args.alpha)?;
+    cfg.mode = args.mode;
     let file = std::fs::File::create(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let mut out = std::io::BufWriter::new(file);

@@ -1,5 +1,5 @@
-//! `crossview model`: create a random encoder file for a scene (`init`) and inspect a model
-//! file (`info`).
+//! `crossview model`: create a random encoder file for a scene (`init`), inspect a model
+//! file (`info`), and give an existing model its label-free match calibration (`calibrate`).
 use std::path::PathBuf;
 
 use clap::{Args, Subcommand};
@@ -11,6 +11,7 @@ use crate::model::onnx::DimensionValue;
 use crate::model::{
     EncoderConfig, EncoderWeights, ModelMetadata, OnnxEncoder, export, runtime, write_onnx,
 };
+use crate::train::clean::BoxFilter;
 
 /// Model file tools.
 #[derive(Debug, Args)]
@@ -26,6 +27,31 @@ pub enum ModelCommand {
     Init(InitArgs),
     /// Print a model file's metadata, width, inputs and outputs.
     Info(InfoArgs),
+    /// Fit the model's label-free match confidence P(same person | distance) on an
+    /// unlabelled recording (synchronized vs time-shifted frames) and store it in a copy of
+    /// the model file.
+    Calibrate(CalibrateArgs),
+}
+
+/// Options of `crossview model calibrate`.
+#[derive(Debug, Args)]
+pub struct CalibrateArgs {
+    /// Model file (SPEC §8 ONNX, written by crossview).
+    #[arg(long, env = "CROSSVIEW_MODEL")]
+    pub model: PathBuf,
+    /// Unlabelled recording of the model's cameras (SPEC §7 JSONL; ids are ignored), e.g.
+    /// the training recording.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Output model file (may be the input file).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Threshold on the calibrated confidence stored as `crossview.match_threshold`.
+    #[arg(long, default_value_t = 0.2)]
+    pub match_threshold: f32,
+    /// Seed of the time-shift draws.
+    #[arg(long, default_value_t = 0, env = "CROSSVIEW_SEED")]
+    pub seed: u64,
 }
 
 /// Options of `crossview model init`.
@@ -72,7 +98,65 @@ pub fn run(args: ModelArgs) -> anyhow::Result<()> {
     match args.command {
         ModelCommand::Init(a) => init(a),
         ModelCommand::Info(a) => info(a),
+        ModelCommand::Calibrate(a) => calibrate(a),
     }
+}
+
+fn calibrate(a: CalibrateArgs) -> anyhow::Result<()> {
+    if !(0.0..=1.0).contains(&a.match_threshold) {
+        anyhow::bail!(
+            "--match-threshold must be within [0, 1], got {}",
+            a.match_threshold
+        );
+    }
+    let (weights, mut meta) = export::read_weights(&a.model)?;
+    let recording = crate::io::recording::read_recording(&a.data)?;
+    let names =
+        |c: &[crate::core::CameraSpec]| c.iter().map(|c| c.name.clone()).collect::<Vec<_>>();
+    if names(&recording.scene.cameras) != names(&meta.cameras) {
+        anyhow::bail!(
+            "the recording's cameras {:?} differ from the model's {:?}",
+            names(&recording.scene.cameras),
+            names(&meta.cameras)
+        );
+    }
+    let mut set = crate::train::TrainingSet::from_recording(&recording, 1)?;
+    // The boxes the model was trained on: its own training filter, when it records one.
+    let filter: BoxFilter = meta
+        .extra
+        .get("crossview.train_box_filter")
+        .and_then(|f| serde_json::from_str(f).ok())
+        .unwrap_or_default();
+    let stats = filter.apply(&mut set);
+    let mut encoder = weights.clone();
+    let cal = crate::train::calibrate::calibrate(&mut encoder, &set, a.seed)?;
+    println!(
+        "calibrated on {} ({} of {} boxes after the training filter): {} synchronized and {} time-shifted pairs, false share {:.2}",
+        a.data.display(),
+        set.num_boxes(),
+        stats.before,
+        cal.samples[0],
+        cal.samples[1],
+        cal.false_share
+    );
+    let probs: Vec<String> = cal
+        .distances
+        .iter()
+        .zip(&cal.probabilities)
+        .step_by(4)
+        .map(|(d, p)| format!("{d:.2}:{p:.2}"))
+        .collect();
+    println!("P(same | distance): {}", probs.join(" "));
+    meta.calibration = Some(std::sync::Arc::new(cal));
+    meta.match_threshold = Some(a.match_threshold);
+    meta.validate(&a.out.display().to_string())?;
+    write_onnx(&a.out, &weights, &meta)?;
+    println!(
+        "wrote {} (crossview.match_threshold {})",
+        a.out.display(),
+        a.match_threshold
+    );
+    Ok(())
 }
 
 /// Reads and validates only the header line (`{"scene": {...}}`) of a SPEC §7 recording.
@@ -144,6 +228,15 @@ fn info(a: InfoArgs) -> anyhow::Result<()> {
     println!("version:   {}", meta.version);
     println!("threshold: {}", meta.threshold);
     println!("alpha:     {}", meta.alpha);
+    match &meta.calibration {
+        Some(c) => println!(
+            "calibrated: yes ({} knots, false share {:.2}), match threshold {}",
+            c.distances.len(),
+            c.false_share,
+            meta.identity_threshold()
+        ),
+        None => println!("calibrated: no (identities use S at the threshold)"),
+    }
     println!("cameras:   {}", meta.cameras.len());
     for (i, c) in meta.cameras.iter().enumerate() {
         println!("  [{i}] {} {}x{}", c.name, c.width, c.height);

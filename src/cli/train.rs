@@ -9,6 +9,7 @@ use clap::Args;
 use crate::io::recording::read_recording;
 use crate::model::ModelMetadata;
 use crate::model::export::write_onnx;
+use crate::train::calibrate::calibrate;
 use crate::train::clean::BoxFilter;
 use crate::train::curve::write_svg;
 use crate::train::trainer::{CheckpointOptions, TrainConfig, TrainOutcome, Validator, train};
@@ -80,6 +81,11 @@ pub struct TrainArgs {
     /// Appearance weight stored in the model and used when boxes carry appearance.
     #[arg(long, default_value_t = 0.1)]
     pub alpha: f32,
+    /// [ours] Threshold on the calibrated match confidence P(same person | distance) stored
+    /// as `crossview.match_threshold` (the calibration itself is fitted on the training
+    /// frames after training, without labels).
+    #[arg(long, default_value_t = 0.2)]
+    pub match_threshold: f32,
     /// Seed for initialisation and sampling (same seed + machine = same run).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -128,8 +134,11 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         // SAFETY: set before any worker thread exists.
         unsafe { std::env::set_var("RAYON_NUM_THREADS", t.max(1).to_string()) };
     }
-    if !(0.0..=1.0).contains(&args.threshold) || !(0.0..=1.0).contains(&args.alpha) {
-        anyhow::bail!("--threshold and --alpha must be within [0, 1]");
+    if !(0.0..=1.0).contains(&args.threshold)
+        || !(0.0..=1.0).contains(&args.alpha)
+        || !(0.0..=1.0).contains(&args.match_threshold)
+    {
+        anyhow::bail!("--threshold, --match-threshold and --alpha must be within [0, 1]");
     }
     if !(0.0..1.0).contains(&args.min_box_height) || !(0.0..=1.0).contains(&args.drop_static_iou) {
         anyhow::bail!("--min-box-height must be within [0, 1) and --drop-static-iou within [0, 1]");
@@ -211,7 +220,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_default()
     });
-    let meta = metadata(
+    let mut meta = metadata(
         &rec.scene.cameras,
         &args,
         &cfg,
@@ -219,6 +228,15 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         &data_name,
         &rec.scene.name,
     );
+    // Label-free confidence: synchronized vs time-shifted pairs of the training frames.
+    let mut exported = outcome.weights.clone();
+    match calibrate(&mut exported, &set, args.seed) {
+        Ok(cal) => {
+            meta.calibration = Some(std::sync::Arc::new(cal));
+            meta.match_threshold = Some(args.match_threshold);
+        }
+        Err(e) => tracing::warn!(error = %e, "no calibration stored: identities will use S"),
+    }
     write_onnx(&args.out, &outcome.weights, &meta)
         .with_context(|| format!("writing {}", args.out.display()))?;
     let curve = args

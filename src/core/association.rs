@@ -2,7 +2,7 @@
 //! reported views, and build global identities.
 use ndarray::Array2;
 
-use crate::core::identity::{Identity, build_identities, pairs_from_identities};
+use crate::core::identity::{Identity, IdentityConfig, build_identities, pairs_from_identities};
 use crate::core::matching::{
     PairMatching, all_pairs_distances, euclidean_distances, match_from_distances,
 };
@@ -26,7 +26,7 @@ pub struct FrameAssociation {
     pub embeddings: FrameEmbeddings,
     /// Every pair `cam_a < cam_b` where both views have at least one box.
     pub pairs: Vec<ViewPair>,
-    /// Global identities over all views.
+    /// Identities over all views (camera-exclusive, consistent across views).
     pub identities: Vec<Identity>,
 }
 
@@ -34,11 +34,15 @@ pub struct FrameAssociation {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Mode {
-    /// SPEC §3: each camera pair matched on its own (Hungarian + threshold).
+    /// SPEC §3: each camera pair matched on its own, Hungarian pairs with `S ≥ threshold`.
     #[default]
     Pairwise,
-    /// **[ours]** matches derived from the global identities (camera-exclusive clusters).
-    Global,
+    /// **[ours]** each camera pair on its own, Hungarian pairs whose identity confidence
+    /// (calibrated `P(same | distance)` when the model has a calibration, else `S`) reaches
+    /// the identity threshold.
+    Calibrated,
+    /// **[ours]** the matches implied by the identities.
+    Identities,
 }
 
 impl std::str::FromStr for Mode {
@@ -46,10 +50,11 @@ impl std::str::FromStr for Mode {
     fn from_str(s: &str) -> Result<Self> {
         match s {
             "pairwise" => Ok(Mode::Pairwise),
-            "global" => Ok(Mode::Global),
+            "calibrated" => Ok(Mode::Calibrated),
+            "identities" | "global" => Ok(Mode::Identities),
             other => Err(Error::invalid(
                 "mode",
-                format!("expected 'pairwise' or 'global', got '{other}'"),
+                format!("expected 'pairwise', 'calibrated' or 'identities', got '{other}'"),
             )),
         }
     }
@@ -59,29 +64,35 @@ impl std::fmt::Display for Mode {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(match self {
             Mode::Pairwise => "pairwise",
-            Mode::Global => "global",
+            Mode::Calibrated => "calibrated",
+            Mode::Identities => "identities",
         })
     }
 }
 
-/// Association parameters (SPEC §3).
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// Association parameters.
+#[derive(Debug, Clone, PartialEq)]
 pub struct AssociationConfig {
-    /// Confidence threshold: pairs (or cluster merges) with `S < threshold` are dropped.
+    /// SPEC §3 threshold on `S`: the pairwise matches keep Hungarian pairs with
+    /// `S ≥ threshold` (what the paper's metrics score).
     pub threshold: f32,
     /// Appearance weight in the distance fusion (used only when appearance is present).
     pub alpha: f32,
     /// Which matches the frame's `pairs` report.
     pub mode: Mode,
+    /// How identities are built and scored (their own confidence and threshold).
+    pub identity: IdentityConfig,
 }
 
 impl Default for AssociationConfig {
-    /// The WILDTRACK reference setting: threshold 0.4, alpha 0.1, pairwise.
+    /// The WILDTRACK reference setting: threshold 0.4, alpha 0.1, pairwise, uncalibrated
+    /// identities at the same threshold.
     fn default() -> Self {
         AssociationConfig {
             threshold: 0.4,
             alpha: 0.1,
             mode: Mode::Pairwise,
+            identity: IdentityConfig::default(),
         }
     }
 }
@@ -159,18 +170,23 @@ fn appearance_matrix(dets: &[crate::core::Detection]) -> Option<Array2<f32>> {
 
 /// Associates one frame from its per-view embeddings (as returned by [`embed_frame`]):
 /// SPEC §3 matching for every pair `cam_a < cam_b` with boxes on both sides (see
-/// [`associate_pairs`]), then global identities (always). With [`Mode::Global`] the pairs'
-/// matches are the ones derived from the identities; the score matrices are the same in both
-/// modes.
+/// [`associate_pairs`]), then the identities (always). The pairs' matches are the ones
+/// `cfg.mode` names; score matrices and assignments are the same in every mode.
 pub fn associate_frame(
     frame: &Frame,
     embeddings: FrameEmbeddings,
     cfg: &AssociationConfig,
 ) -> FrameAssociation {
     let (sizes, mut pairs) = match_pairs(frame, &embeddings, cfg);
-    let identities = build_identities(&sizes, &pairs, cfg.threshold);
-    if cfg.mode == Mode::Global {
-        pairs = pairs_from_identities(&identities, &pairs);
+    let identities = build_identities(&sizes, &pairs, &cfg.identity);
+    match cfg.mode {
+        Mode::Pairwise => {}
+        Mode::Calibrated => {
+            for p in &mut pairs {
+                p.matching.matches = cfg.identity.kept(&p.matching);
+            }
+        }
+        Mode::Identities => pairs = pairs_from_identities(&identities, &pairs),
     }
     FrameAssociation {
         frame_id: frame.frame_id,
@@ -178,6 +194,17 @@ pub fn associate_frame(
         pairs,
         identities,
     }
+}
+
+/// The identities of one frame and nothing else (what the service returns): the same as
+/// `associate_frame(..).identities` without building the per-mode match lists.
+pub fn frame_identities(
+    frame: &Frame,
+    embeddings: &FrameEmbeddings,
+    cfg: &AssociationConfig,
+) -> Vec<Identity> {
+    let (sizes, pairs) = match_pairs(frame, embeddings, cfg);
+    build_identities(&sizes, &pairs, &cfg.identity)
 }
 
 /// SPEC §3 matching alone, without identities: every pair `cam_a < cam_b` with boxes on both
@@ -329,7 +356,7 @@ mod tests {
     }
 
     #[test]
-    fn global_mode_reports_identity_matches() {
+    fn identities_mode_reports_identity_matches() {
         let sc = scene(2);
         let mut frame = Frame::new(1, 2);
         frame.views[0] = Some(vec![det(10.0, 10.0)]);
@@ -337,8 +364,9 @@ mod tests {
         let mut enc = CentreEncoder { calls: 0 };
         let emb = embed_frame(&mut enc, &sc, &frame).unwrap();
         let cfg = AssociationConfig {
-            mode: Mode::Global,
+            mode: Mode::Identities,
             threshold: 0.0,
+            identity: IdentityConfig::new(None, 0.0),
             ..Default::default()
         };
         let fa = associate_frame(&frame, emb, &cfg);
@@ -357,6 +385,7 @@ mod tests {
         let err = embed_frame(&mut enc, &sc, &frame).unwrap_err().to_string();
         assert!(err.contains("cam0"), "{err}");
         assert!("bogus".parse::<Mode>().is_err());
-        assert_eq!("global".parse::<Mode>().unwrap(), Mode::Global);
+        assert_eq!("global".parse::<Mode>().unwrap(), Mode::Identities);
+        assert_eq!("calibrated".parse::<Mode>().unwrap(), Mode::Calibrated);
     }
 }

@@ -1,332 +1,331 @@
-//! **[ours]** Global identities: the pairwise matches of all camera pairs of a frame turned
-//! into clusters with at most one box per camera, each with a confidence.
+//! **[ours]** Identities: the camera pairs' Hungarian matches of one frame turned into
+//! persons — clusters with at most one box per camera — that are consistent across views.
 //!
-//! # Scheme: constrained average-linkage agglomeration
+//! # Scheme: greedy additive clustering of the Hungarian evidence
 //!
-//! Pairwise Hungarian matching decides each camera pair in isolation, so its results can be
-//! mutually inconsistent (A1↔B1, B1↔C1 but A1↔C2) and a near-tie in one pair cannot be
-//! resolved with evidence from the other cameras. Here every box of the frame starts as its
-//! own cluster and the two clusters with the highest *average linkage* — the mean confidence
-//! `S` over all cross-camera box pairs between them, taken from the S matrices of all camera
-//! pairs — are merged, repeatedly, subject to two rules:
-//! - **exclusivity**: a cluster holds at most one box per camera (clusters sharing a camera
-//!   never merge), the global counterpart of the one-to-one Hungarian constraint;
-//! - **threshold**: merging stops when the best remaining linkage is below the threshold,
-//!   the global counterpart of dropping pairs with `S < threshold`.
+//! Pairwise matching is good at what it decides (each camera pair's one-to-one assignment)
+//! but decides each pair alone, so its results can contradict each other (A1↔B1, B1↔C1 but
+//! A1↔C2). Averaging raw `S` entries over clusters (the previous scheme) let unrelated,
+//! pair-normalised scores override those decisions. Here the evidence is the assignment
+//! itself. Every pair of boxes `u`, `v` in different cameras gets an additive weight:
+//! - `u`, `v` a Hungarian pair: `conf − threshold`, plus `support_bonus` for every third
+//!   camera whose Hungarian partners of `u` and of `v` are the same box, minus
+//!   `dissent_penalty` for every third camera where both have partners and they differ;
+//! - otherwise, when `u` or `v` has a *kept* Hungarian partner (`conf ≥ threshold`) in the
+//!   other's camera: `−conflict_penalty` (that camera pair chose someone else);
+//! - otherwise 0 (no evidence either way).
 //!
-//! Because the linkage of a candidate box to a cluster averages its scores to *every* member,
-//! a box that one camera pair mismatched is pulled to the cluster that the other cameras
-//! agree on (transitivity repair). With two cameras the scheme reduces to greedy
-//! best-first one-to-one matching above the threshold.
+//! Starting from singletons, the two clusters with the largest total weight between them are
+//! merged while that total is ≥ 0 and their camera sets are disjoint (greedy additive edge
+//! contraction, the standard heuristic for correlation clustering / multicut). Weights are
+//! additive, so merging never needs more than the member pairs of the two clusters; only
+//! clusters joined by a Hungarian pair can reach a positive total, so the candidates stay a
+//! handful per cluster, held in a max-heap with versioned entries.
 //!
-//! A pair of clusters is a candidate only when some member pair scores `S >= threshold`
-//! (an average cannot reach the threshold otherwise), so with a sensible threshold each
-//! cluster has a handful of candidates and no `N × N` state is kept. Candidates wait in a
-//! max-heap at their current linkage; a merge recomputes only the merged cluster's links
-//! (the two old links added up, or one old link plus the raw member scores it lacked) and
-//! pushes them, and outdated heap entries are skipped when popped. A WILDTRACK-sized frame
-//! (7 × 35 boxes) takes about a tenth of a millisecond on one core (BENCHMARKS.md).
+//! Properties (tested): identities are camera-exclusive; with two cameras they are exactly
+//! the pairwise matches kept at `threshold`; when the kept matches of all camera pairs are
+//! already transitively consistent they are returned unchanged; one camera pair that swaps two
+//! persons while the other pairs agree is repaired; the result is deterministic (ties go to
+//! the lowest box indices). The method and its parameters were chosen by measurement against
+//! union-find variants on the WILDTRACK validation frames (BENCHMARKS.md, "Identities").
 //!
 //! # Confidence
-//! A cluster of two or more boxes: the mean `S` over all its member pairs (its internal
-//! average linkage). A singleton: `1 − max S` to any box of another camera (how clearly it
-//! matches nobody), or 1 when no other camera has boxes. Both lie in [0, 1] (clamped).
+//! `conf` is the pair's calibrated `P(same person | distance)` when the model carries a
+//! [`Calibration`] (comparable across pairs and scene densities), else SPEC §3's `S`. An
+//! identity's confidence is the chance that it is right — its members are one person and no
+//! box of that person is missing:
+//! `mean conf of the Hungarian pairs inside it (1 for a single box)
+//!  × ∏ over the other cameras (1 − the best conf of a member's Hungarian partner there)`.
+//! A single box that no camera pair assigned, while other cameras have boxes, gets 0.5.
+use std::cmp::Reverse;
 use std::collections::BinaryHeap;
+use std::sync::Arc;
 
 use crate::core::association::ViewPair;
-use crate::core::matching::{Match, PairMatching};
+use crate::core::calibration::Calibration;
+use crate::core::matching::{Assigned, Match, PairMatching};
 
 /// A person seen by one or more cameras in one frame.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Identity {
     /// Identity number within the frame (0-based, dense).
     pub id: usize,
-    /// Confidence in [0, 1].
+    /// Confidence in [0, 1] (see the module documentation).
     pub confidence: f32,
     /// Members as `(camera index, index into that camera's detections)`, sorted by camera.
     pub members: Vec<(usize, usize)>,
 }
 
-/// The original scores of a frame, looked up by flattened box index (boxes numbered camera
-/// by camera).
-struct Scores<'a> {
-    pairs: &'a [ViewPair],
-    /// First flattened index of each camera.
+/// How a frame's Hungarian pairs become identities.
+#[derive(Debug, Clone, PartialEq)]
+pub struct IdentityConfig {
+    /// The model's calibration: with it a pair's confidence is `P(same | distance)`, without
+    /// it SPEC §3's `S`.
+    pub calibration: Option<Arc<Calibration>>,
+    /// A Hungarian pair counts as a kept match when its confidence is at least this.
+    pub threshold: f32,
+    /// Weight added per third camera that agrees with a Hungarian pair.
+    pub support_bonus: f32,
+    /// Weight removed per third camera that contradicts a Hungarian pair.
+    pub dissent_penalty: f32,
+    /// Weight of a box pair that a kept match of its camera pair contradicts.
+    pub conflict_penalty: f32,
+}
+
+impl IdentityConfig {
+    /// The measured defaults (BENCHMARKS.md) around a confidence `threshold`.
+    pub fn new(calibration: Option<Arc<Calibration>>, threshold: f32) -> Self {
+        IdentityConfig {
+            calibration,
+            threshold,
+            support_bonus: 0.1,
+            dissent_penalty: 0.05,
+            conflict_penalty: 0.3,
+        }
+    }
+
+    /// The confidence of one Hungarian pair: calibrated probability, or `S`. Non-finite
+    /// values become 0 (no evidence).
+    pub fn confidence(&self, p: &Assigned) -> f32 {
+        let c = match &self.calibration {
+            Some(cal) => cal.probability(p.distance),
+            None => p.score,
+        };
+        if c.is_finite() { c } else { 0.0 }
+    }
+
+    /// The Hungarian pairs of `m` whose confidence reaches the threshold, scored with that
+    /// confidence: pairwise matching under this configuration's measure.
+    pub fn kept(&self, m: &PairMatching) -> Vec<Match> {
+        m.assignment
+            .iter()
+            .filter_map(|p| {
+                let c = self.confidence(p);
+                (c >= self.threshold).then_some(Match {
+                    a: p.a,
+                    b: p.b,
+                    score: c,
+                })
+            })
+            .collect()
+    }
+}
+
+impl Default for IdentityConfig {
+    /// Uncalibrated, threshold 0.4 (SPEC §3's WILDTRACK setting).
+    fn default() -> Self {
+        IdentityConfig::new(None, 0.4)
+    }
+}
+
+/// No partner.
+const NONE: u32 = u32::MAX;
+
+/// The frame's Hungarian evidence, indexed by flattened box (boxes numbered camera by camera)
+/// and camera: `u * cameras + c`.
+struct Evidence {
+    cameras: usize,
     offsets: Vec<usize>,
     cam_of: Vec<usize>,
-    cameras: usize,
-    /// `table[a * cameras + b]`: the pair scoring cameras `a` and `b`, and whether it is
-    /// stored as `(b, a)`.
-    table: Vec<Option<(usize, bool)>>,
+    /// Hungarian partner of box `u` in camera `c`, or [`NONE`].
+    partner: Vec<u32>,
+    /// Confidence of that pair.
+    conf: Vec<f32>,
+    /// Weight of that pair (see the module documentation).
+    weight: Vec<f32>,
+    threshold: f32,
+    conflict: f32,
 }
 
-impl Scores<'_> {
-    /// The highest finite score of box `i` to any box of another camera (read only for the
-    /// boxes left alone, so it is not precomputed for all).
-    fn best(&self, i: usize) -> Option<f32> {
-        let a = self.cam_of[i];
-        let x = i - self.offsets[a];
-        (0..self.cameras)
-            .filter_map(|b| self.table[a * self.cameras + b])
-            .flat_map(|(p, swapped)| {
-                let s = &self.pairs[p].matching.scores;
-                if swapped { s.column(x) } else { s.row(x) }
-            })
-            .copied()
-            .filter(|v| v.is_finite())
-            .reduce(f32::max)
+impl Evidence {
+    /// Whether a camera other than box `u`'s has boxes in this frame.
+    fn others_have_boxes(&self, u: usize) -> bool {
+        let cu = self.cam_of[u];
+        (0..self.cameras).any(|c| c != cu && self.offsets[c + 1] > self.offsets[c])
     }
 
-    /// The finite score between boxes `i` and `j` (different cameras), if any.
-    fn get(&self, i: usize, j: usize) -> Option<f32> {
-        let (a, b) = (self.cam_of[i], self.cam_of[j]);
-        let (p, swapped) = self.table[a * self.cameras + b]?;
-        let (x, y) = (i - self.offsets[a], j - self.offsets[b]);
-        let s = &self.pairs[p].matching.scores;
-        let v = if swapped { s[(y, x)] } else { s[(x, y)] };
-        v.is_finite().then_some(v)
+    fn kept(&self, u: usize, c: usize) -> bool {
+        let k = u * self.cameras + c;
+        self.partner[k] != NONE && self.conf[k] >= self.threshold
     }
-}
 
-/// Scores between two live clusters: their sum over scored member pairs and the count.
-#[derive(Debug, Clone, Copy)]
-struct Link {
-    to: usize,
-    sum: f32,
-    count: u32,
-}
-
-impl Link {
-    fn linkage(&self) -> f32 {
-        self.sum / self.count as f32
+    /// The additive weight between boxes `u` and `v`.
+    fn pair_weight(&self, u: usize, v: usize) -> f32 {
+        let (cu, cv) = (self.cam_of[u], self.cam_of[v]);
+        if cu == cv {
+            return 0.0;
+        }
+        let k = u * self.cameras + cv;
+        if self.partner[k] == v as u32 {
+            self.weight[k]
+        } else if self.kept(u, cv) || self.kept(v, cu) {
+            -self.conflict
+        } else {
+            0.0
+        }
     }
 }
 
-/// A possible merge of clusters `lo < hi` at average linkage `linkage`, packed into one
-/// integer whose order is the merge order: highest linkage first, ties to the lowest
-/// `(lo, hi)` (a strict total order, so the result never depends on the order candidates
-/// were seen in). Packing keeps the heap's comparisons and moves cheap.
+/// A merge candidate: clusters `lo < hi` at total weight `w`, valid while both clusters still
+/// have the versions they had when it was pushed. Ordered by weight, then lowest `(lo, hi)`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
-struct Candidate(u128);
+struct Candidate {
+    key: u32,
+    lo: Reverse<u32>,
+    hi: Reverse<u32>,
+    versions: (u32, u32),
+}
 
-/// Box indices must fit in this many bits of a [`Candidate`] (a frame of 2^48 boxes could
-/// not be held in memory anyway).
-const INDEX_BITS: u32 = 48;
-const INDEX_MASK: u128 = (1 << INDEX_BITS) - 1;
-
-impl Candidate {
-    fn new(linkage: f32, a: usize, b: usize) -> Self {
-        // f32 bits mapped to an unsigned key with the same order as `f32::total_cmp`.
-        let bits = linkage.to_bits();
-        let key = if bits >> 31 == 1 {
-            !bits
-        } else {
-            bits | 1 << 31
-        };
-        let (lo, hi) = (a.min(b) as u128, a.max(b) as u128);
-        Candidate(
-            (key as u128) << (2 * INDEX_BITS)
-                | (!lo & INDEX_MASK) << INDEX_BITS
-                | (!hi & INDEX_MASK),
-        )
-    }
-
-    fn linkage(self) -> f32 {
-        let key = (self.0 >> (2 * INDEX_BITS)) as u32;
-        f32::from_bits(if key >> 31 == 1 {
-            key & !(1 << 31)
-        } else {
-            !key
-        })
-    }
-
-    fn lo(self) -> usize {
-        (!(self.0 >> INDEX_BITS) & INDEX_MASK) as usize
-    }
-
-    fn hi(self) -> usize {
-        (!self.0 & INDEX_MASK) as usize
+/// `f32` bits mapped to an unsigned key with the same order as `f32::total_cmp`.
+fn order_key(w: f32) -> u32 {
+    let bits = w.to_bits();
+    if bits >> 31 == 1 {
+        !bits
+    } else {
+        bits | 1 << 31
     }
 }
 
 /// End of a member list.
 const END: usize = usize::MAX;
 
-/// Working state of the agglomeration over the frame's boxes (a cluster is named by its
-/// smallest box index).
-struct Agglomeration<'a> {
-    scores: Scores<'a>,
-    threshold: f32,
+/// Working state of the clustering (a cluster is named by its smallest box index).
+struct Clustering<'a> {
+    ev: &'a Evidence,
     /// Camera bitset of each cluster (`words` u64 per cluster).
     cams: Vec<u64>,
     words: usize,
-    alive: Vec<bool>,
-    /// Members as linked lists: `next[i]` follows box `i` in its cluster ([`END`] ends it),
-    /// `last[r]` is the last member of cluster `r` (so a merge is O(1)).
+    root: Vec<usize>,
+    version: Vec<u32>,
+    /// Members as linked lists: `next[i]` follows box `i` ([`END`] ends it), `last[r]` is the
+    /// last member of cluster `r`.
     next: Vec<usize>,
     last: Vec<usize>,
-    /// Merge partners of each live cluster, sorted by `to`: live clusters on other cameras
-    /// with at least one member pair scoring `S >= threshold` (an average can reach the
-    /// threshold only then), so a merge touches a handful of clusters instead of all.
-    links: Vec<Vec<Link>>,
-    /// Every candidate pair at its current linkage, plus stale entries (a dead cluster or an
-    /// outdated linkage) that are skipped when popped.
     heap: BinaryHeap<Candidate>,
 }
 
-impl Agglomeration<'_> {
+impl Clustering<'_> {
     fn disjoint(&self, r: usize, s: usize) -> bool {
         let w = self.words;
-        let (a, b) = (
-            &self.cams[r * w..(r + 1) * w],
-            &self.cams[s * w..(s + 1) * w],
-        );
-        a.iter().zip(b).all(|(x, y)| x & y == 0)
+        self.cams[r * w..(r + 1) * w]
+            .iter()
+            .zip(&self.cams[s * w..(s + 1) * w])
+            .all(|(x, y)| x & y == 0)
     }
 
-    /// The current linkage of live clusters `lo < hi`, when they are merge partners.
-    fn linkage(&self, lo: usize, hi: usize) -> Option<f32> {
-        if !(self.alive[lo] && self.alive[hi]) {
-            return None;
-        }
-        let links = &self.links[lo];
-        let k = links.binary_search_by_key(&hi, |l| l.to).ok()?;
-        Some(links[k].linkage())
-    }
-
-    /// The members of cluster `r`.
     fn members(&self, r: usize) -> impl Iterator<Item = usize> + '_ {
         std::iter::successors(Some(r), |&i| Some(self.next[i]).filter(|&j| j != END))
     }
 
-    /// Sum and count of the scores between the members of clusters `x` and `k`.
-    fn raw(&self, x: usize, k: usize) -> (f32, u32) {
-        let (mut sum, mut count) = (0f32, 0u32);
-        for i in self.members(x) {
-            for j in self.members(k) {
-                if let Some(v) = self.scores.get(i, j) {
-                    sum += v;
-                    count += 1;
-                }
+    /// Total weight between clusters `r` and `s`.
+    fn weight(&self, r: usize, s: usize) -> f32 {
+        let mut w = 0f32;
+        for u in self.members(r) {
+            for v in self.members(s) {
+                w += self.ev.pair_weight(u, v);
             }
         }
-        (sum, count)
+        w
     }
 
-    /// Merges cluster `s` into cluster `r`: the merged cluster's partners are the union of
-    /// both partner lists (minus those sharing a camera with it), each at the linkage of the
-    /// merged member set, and every partner's own list is updated to match.
+    fn push(&mut self, r: usize, s: usize) {
+        if !self.disjoint(r, s) {
+            return;
+        }
+        let w = self.weight(r, s);
+        if w >= 0.0 {
+            let (lo, hi) = (r.min(s), r.max(s));
+            self.heap.push(Candidate {
+                key: order_key(w),
+                lo: Reverse(lo as u32),
+                hi: Reverse(hi as u32),
+                versions: (self.version[lo], self.version[hi]),
+            });
+        }
+    }
+
     fn merge(&mut self, r: usize, s: usize) {
         let w = self.words;
         for i in 0..w {
             self.cams[r * w + i] |= self.cams[s * w + i];
         }
-        let old_r = std::mem::take(&mut self.links[r]);
-        let old_s = std::mem::take(&mut self.links[s]);
-        let mut merged = Vec::with_capacity(old_r.len() + old_s.len());
-        let (mut x, mut y) = (0, 0);
-        loop {
-            let (k, sum, count) = match (old_r.get(x), old_s.get(y)) {
-                (None, None) => break,
-                (Some(a), Some(b)) if a.to == b.to => {
-                    (x, y) = (x + 1, y + 1);
-                    (a.to, a.sum + b.sum, a.count + b.count)
-                }
-                (Some(a), b) if b.is_none_or(|b| a.to < b.to) => {
-                    x += 1;
-                    if a.to == s || !self.disjoint(r, a.to) {
-                        (a.to, 0.0, 0)
-                    } else {
-                        let (sum, count) = self.raw(s, a.to);
-                        (a.to, a.sum + sum, a.count + count)
-                    }
-                }
-                (_, Some(b)) => {
-                    y += 1;
-                    if b.to == r || !self.disjoint(r, b.to) {
-                        (b.to, 0.0, 0)
-                    } else {
-                        let (sum, count) = self.raw(r, b.to);
-                        (b.to, b.sum + sum, b.count + count)
-                    }
-                }
-                (Some(_), None) => unreachable!("covered by the arm above"),
-            };
-            if k == r || k == s {
-                continue;
-            }
-            // `k` drops `s`; it keeps `r`, at the new linkage, only while it may still merge.
-            let keep = count > 0 && self.disjoint(r, k);
-            let theirs = &mut self.links[k];
-            if let Ok(pos) = theirs.binary_search_by_key(&s, |l| l.to) {
-                theirs.remove(pos);
-            }
-            let link = Link { to: r, sum, count };
-            match (theirs.binary_search_by_key(&r, |l| l.to), keep) {
-                (Ok(pos), true) => theirs[pos] = link,
-                (Ok(pos), false) => {
-                    theirs.remove(pos);
-                }
-                (Err(pos), true) => theirs.insert(pos, link),
-                (Err(_), false) => {}
-            }
-            if keep {
-                let l = link.linkage();
-                if l >= self.threshold {
-                    self.heap.push(Candidate::new(l, r, k));
-                }
-                merged.push(Link { to: k, sum, count });
-            }
+        let mut i = s;
+        while i != END {
+            self.root[i] = r;
+            i = self.next[i];
         }
-        self.links[r] = merged;
         self.next[self.last[r]] = s;
         self.last[r] = self.last[s];
-        self.alive[s] = false;
+        self.version[r] += 1;
+        self.version[s] += 1;
+        // Fresh candidates for every cluster a member of the merged one has a partner in.
+        let c = self.ev.cameras;
+        let mut seen: Vec<usize> = Vec::with_capacity(16);
+        let members: Vec<usize> = self.members(r).collect();
+        for u in members {
+            for &p in &self.ev.partner[u * c..(u + 1) * c] {
+                if p == NONE {
+                    continue;
+                }
+                let k = self.root[p as usize];
+                if k != r && !seen.contains(&k) {
+                    seen.push(k);
+                    self.push(r, k);
+                }
+            }
+        }
     }
 }
 
-/// Builds the global identities of one frame.
+/// Builds the identities of one frame.
 ///
 /// `view_sizes[c]` is the number of boxes of camera `c` (0 for cameras without boxes or
-/// that did not report); `pairs` holds the S matrices of camera pairs (`cam_a != cam_b`,
-/// scores of shape `[view_sizes[cam_a], view_sizes[cam_b]]`; pairs with another shape, and
-/// repeats of a camera pair, are ignored with a warning). Box pairs without a score never
-/// link directly. Every box ends in exactly one identity. See the module documentation for
-/// the scheme and the confidence.
-pub fn build_identities(view_sizes: &[usize], pairs: &[ViewPair], threshold: f32) -> Vec<Identity> {
-    let mut offsets = Vec::with_capacity(view_sizes.len() + 1);
-    let mut total = 0usize;
+/// that did not report); `pairs` holds the Hungarian assignments of camera pairs (`cam_a !=
+/// cam_b`, assignment indices within `view_sizes`; pairs that break this, and repeats of a
+/// camera pair, are ignored with a warning). Every box ends in exactly one identity, and
+/// identities are ordered by their first member. See the module documentation.
+pub fn build_identities(
+    view_sizes: &[usize],
+    pairs: &[ViewPair],
+    cfg: &IdentityConfig,
+) -> Vec<Identity> {
+    let cameras = view_sizes.len();
+    let mut offsets = Vec::with_capacity(cameras + 1);
+    let mut n = 0usize;
     for &s in view_sizes {
-        offsets.push(total);
-        total += s;
+        offsets.push(n);
+        n += s;
     }
-    offsets.push(total);
-    let n = total;
+    offsets.push(n);
     if n == 0 {
         return Vec::new();
     }
-    let cameras = view_sizes.len();
+    if n >= NONE as usize {
+        tracing::warn!(
+            boxes = n,
+            "frame too large for identities; every box left alone"
+        );
+        return singletons(view_sizes);
+    }
     let cam_of: Vec<usize> = view_sizes
         .iter()
         .enumerate()
         .flat_map(|(c, &s)| std::iter::repeat_n(c, s))
         .collect();
-    let words = cameras.div_ceil(64).max(1);
-    let mut cams = vec![0u64; n * words];
-    for (i, &c) in cam_of.iter().enumerate() {
-        cams[i * words + c / 64] |= 1u64 << (c % 64);
-    }
-    let mut table = vec![None; cameras * cameras];
-    let mut candidates = Vec::new();
-    for (p, pair) in pairs.iter().enumerate() {
+    let mut partner = vec![NONE; n * cameras];
+    let mut conf = vec![0f32; n * cameras];
+    let mut seen_pair = vec![false; cameras * cameras];
+    for pair in pairs {
         let (ca, cb) = (pair.cam_a, pair.cam_b);
-        let s = &pair.matching.scores;
-        if ca == cb
-            || ca >= cameras
-            || cb >= cameras
-            || s.dim() != (view_sizes[ca], view_sizes[cb])
-            || table[ca * cameras + cb].is_some()
-        {
+        let fits = ca != cb
+            && ca < cameras
+            && cb < cameras
+            && pair
+                .matching
+                .assignment
+                .iter()
+                .all(|p| p.a < view_sizes[ca] && p.b < view_sizes[cb]);
+        if !fits || seen_pair[ca * cameras + cb] {
             tracing::warn!(
                 cam_a = ca,
                 cam_b = cb,
@@ -334,159 +333,211 @@ pub fn build_identities(view_sizes: &[usize], pairs: &[ViewPair], threshold: f32
             );
             continue;
         }
-        table[ca * cameras + cb] = Some((p, false));
-        table[cb * cameras + ca] = Some((p, true));
-        let cols = s.ncols();
-        if cols == 0 {
-            continue;
-        }
-        let s = s.as_standard_layout();
-        let data = s.as_slice().expect("standard layout is contiguous");
-        for (a, row) in data.chunks_exact(cols).enumerate() {
-            let i = offsets[ca] + a;
-            // A branch-free bit mask per 16 scores (vector code), then only the set bits.
-            // NaN fails the comparison; infinities are no evidence either.
-            let mut push = |b: usize| {
-                let v = row[b];
-                if v.is_finite() {
-                    candidates.push(Candidate::new(v, i, offsets[cb] + b));
-                }
-            };
-            let mut chunks = row.chunks_exact(16);
-            for (c, chunk) in (&mut chunks).enumerate() {
-                let mut mask = 0u32;
-                for (k, &v) in chunk.iter().enumerate() {
-                    mask |= u32::from(v >= threshold) << k;
-                }
-                while mask != 0 {
-                    push(c * 16 + mask.trailing_zeros() as usize);
-                    mask &= mask - 1;
-                }
+        seen_pair[ca * cameras + cb] = true;
+        seen_pair[cb * cameras + ca] = true;
+        for p in &pair.matching.assignment {
+            let (u, v) = (offsets[ca] + p.a, offsets[cb] + p.b);
+            let (ku, kv) = (u * cameras + cb, v * cameras + ca);
+            if partner[ku] != NONE || partner[kv] != NONE {
+                continue; // not one-to-one: keep the first
             }
-            let done = cols - chunks.remainder().len();
-            for (k, &v) in chunks.remainder().iter().enumerate() {
-                if v >= threshold {
-                    push(done + k);
-                }
-            }
+            let c = cfg.confidence(p);
+            partner[ku] = v as u32;
+            partner[kv] = u as u32;
+            conf[ku] = c;
+            conf[kv] = c;
         }
     }
-    // Every box's links, allocated once at their final size.
-    let mut degree = vec![0usize; n];
-    for c in &candidates {
-        degree[c.lo()] += 1;
-        degree[c.hi()] += 1;
+    // Each Hungarian pair's weight: its confidence margin and what the third cameras say.
+    let mut weight = vec![0f32; n * cameras];
+    for u in 0..n {
+        let cu = cam_of[u];
+        for cv in 0..cameras {
+            let k = u * cameras + cv;
+            let v = partner[k];
+            if v == NONE || (v as usize) < u {
+                continue;
+            }
+            let v = v as usize;
+            let mut w = conf[k] - cfg.threshold;
+            let (pu, pv) = (
+                &partner[u * cameras..(u + 1) * cameras],
+                &partner[v * cameras..(v + 1) * cameras],
+            );
+            for c in 0..cameras {
+                if c == cu || c == cv || pu[c] == NONE || pv[c] == NONE {
+                    continue;
+                }
+                w += if pu[c] == pv[c] {
+                    cfg.support_bonus
+                } else {
+                    -cfg.dissent_penalty
+                };
+            }
+            weight[k] = w;
+            weight[v * cameras + cu] = w;
+        }
     }
-    let mut links: Vec<Vec<Link>> = degree.into_iter().map(Vec::with_capacity).collect();
-    for c in &candidates {
-        let (lo, hi, v) = (c.lo(), c.hi(), c.linkage());
-        links[lo].push(Link {
-            to: hi,
-            sum: v,
-            count: 1,
-        });
-        links[hi].push(Link {
-            to: lo,
-            sum: v,
-            count: 1,
-        });
+    let ev = Evidence {
+        cameras,
+        offsets,
+        cam_of,
+        partner,
+        conf,
+        weight,
+        threshold: cfg.threshold,
+        conflict: cfg.conflict_penalty,
+    };
+    let words = cameras.div_ceil(64).max(1);
+    let mut cams = vec![0u64; n * words];
+    for (i, &c) in ev.cam_of.iter().enumerate() {
+        cams[i * words + c / 64] |= 1u64 << (c % 64);
     }
-    for l in &mut links {
-        l.sort_unstable_by_key(|l| l.to);
-    }
-    let mut ag = Agglomeration {
-        scores: Scores {
-            pairs,
-            offsets,
-            cam_of,
-            cameras,
-            table,
-        },
-        threshold,
+    let mut cl = Clustering {
+        ev: &ev,
         cams,
         words,
-        alive: vec![true; n],
+        root: (0..n).collect(),
+        version: vec![0; n],
         next: vec![END; n],
         last: (0..n).collect(),
-        links,
-        heap: BinaryHeap::from(candidates),
+        heap: BinaryHeap::new(),
     };
-    while let Some(c) = ag.heap.pop() {
-        let (lo, hi) = (c.lo(), c.hi());
-        if ag.linkage(lo, hi) == Some(c.linkage()) {
-            ag.merge(lo, hi);
+    for u in 0..n {
+        for c in 0..cameras {
+            let v = ev.partner[u * cameras + c];
+            if v != NONE && u < v as usize {
+                cl.push(u, v as usize);
+            }
         }
     }
-    // Identities, ordered by their first member (camera, index).
+    while let Some(c) = cl.heap.pop() {
+        let (lo, hi) = (c.lo.0 as usize, c.hi.0 as usize);
+        if cl.root[lo] == lo && cl.root[hi] == hi && (cl.version[lo], cl.version[hi]) == c.versions
+        {
+            cl.merge(lo, hi);
+        }
+    }
     let mut clusters: Vec<Vec<usize>> = (0..n)
-        .filter(|&r| ag.alive[r])
+        .filter(|&r| cl.root[r] == r)
         .map(|r| {
-            let mut m: Vec<usize> = ag.members(r).collect();
+            let mut m: Vec<usize> = cl.members(r).collect();
             m.sort_unstable();
             m
         })
         .collect();
     clusters.sort_unstable_by_key(|m| m[0]);
-    let scores = &ag.scores;
     clusters
         .into_iter()
         .enumerate()
-        .map(|(id, m)| {
-            let confidence = if m.len() == 1 {
-                scores.best(m[0]).map_or(1.0, |s| 1.0 - s)
-            } else {
-                let (mut acc, mut k) = (0f32, 0u32);
-                for (x, &i) in m.iter().enumerate() {
-                    for &j in &m[x + 1..] {
-                        if let Some(v) = scores.get(i, j) {
-                            acc += v;
-                            k += 1;
-                        }
-                    }
-                }
-                if k > 0 { acc / k as f32 } else { 0.0 }
-            };
-            Identity {
-                id,
-                confidence: confidence.clamp(0.0, 1.0),
-                members: m
-                    .iter()
-                    .map(|&i| (scores.cam_of[i], i - scores.offsets[scores.cam_of[i]]))
-                    .collect(),
+        .map(|(id, m)| Identity {
+            id,
+            confidence: confidence(&ev, &m).clamp(0.0, 1.0),
+            members: m
+                .iter()
+                .map(|&i| (ev.cam_of[i], i - ev.offsets[ev.cam_of[i]]))
+                .collect(),
+        })
+        .collect()
+}
+
+/// See the module documentation.
+fn confidence(ev: &Evidence, members: &[usize]) -> f32 {
+    let c = ev.cameras;
+    // How likely the members are one person: the mean confidence of the Hungarian pairs
+    // inside the identity (1 for a single box).
+    let (mut sum, mut k) = (0f32, 0u32);
+    for &u in members {
+        for &v in members {
+            let kk = u * c + ev.cam_of[v];
+            if u < v && ev.cam_of[u] != ev.cam_of[v] && ev.partner[kk] == v as u32 {
+                sum += ev.conf[kk];
+                k += 1;
             }
+        }
+    }
+    let together = match (members.len(), k) {
+        (1, _) => 1.0,
+        (_, 0) => 0.0,
+        _ => sum / k as f32,
+    };
+    // How likely it is complete: for every other camera, the chance that the best Hungarian
+    // partner of any member there is someone else.
+    let mut complete = 1f32;
+    let mut any_partner = false;
+    for cam in 0..c {
+        if members.iter().any(|&u| ev.cam_of[u] == cam) {
+            continue;
+        }
+        let best = members
+            .iter()
+            .filter(|&&u| ev.partner[u * c + cam] != NONE)
+            .map(|&u| ev.conf[u * c + cam].clamp(0.0, 1.0))
+            .reduce(f32::max);
+        if let Some(best) = best {
+            any_partner = true;
+            complete *= 1.0 - best;
+        }
+    }
+    if let [u] = members
+        && !any_partner
+        && ev.others_have_boxes(*u)
+    {
+        // No camera pair assigned this box although other cameras have boxes (its view has
+        // more boxes than theirs): a coin toss.
+        return 0.5;
+    }
+    together * complete
+}
+
+/// Every box its own identity (with no evidence to go on).
+fn singletons(view_sizes: &[usize]) -> Vec<Identity> {
+    view_sizes
+        .iter()
+        .enumerate()
+        .flat_map(|(c, &k)| (0..k).map(move |i| (c, i)))
+        .enumerate()
+        .map(|(id, m)| Identity {
+            id,
+            confidence: 0.0,
+            members: vec![m],
         })
         .collect()
 }
 
 /// Pairwise matches implied by identities: for every camera pair of `pairs`, the boxes that
 /// share an identity, scored with that pair's `S`. Returns `pairs` with their matches
-/// replaced (scores unchanged, matches sorted by `a`), so evaluation can score the global
-/// mode exactly like the pairwise one.
+/// replaced (scores and assignment unchanged, matches sorted by `a`), so evaluation can score
+/// identities exactly like pairwise matching.
 pub fn pairs_from_identities(identities: &[Identity], pairs: &[ViewPair]) -> Vec<ViewPair> {
     pairs
         .iter()
-        .map(|p| {
-            let s = &p.matching.scores;
-            let mut matches: Vec<Match> = identities
-                .iter()
-                .filter_map(|ident| {
-                    let a = ident.members.iter().find(|m| m.0 == p.cam_a)?.1;
-                    let b = ident.members.iter().find(|m| m.0 == p.cam_b)?.1;
-                    let score = *s.get((a, b))?;
-                    Some(Match { a, b, score })
-                })
-                .collect();
-            matches.sort_unstable_by_key(|m| m.a);
-            ViewPair {
-                cam_a: p.cam_a,
-                cam_b: p.cam_b,
-                matching: PairMatching {
-                    scores: s.clone(),
-                    matches,
-                },
-            }
+        .map(|p| ViewPair {
+            cam_a: p.cam_a,
+            cam_b: p.cam_b,
+            matching: PairMatching {
+                scores: p.matching.scores.clone(),
+                assignment: p.matching.assignment.clone(),
+                matches: identity_matches(identities, p),
+            },
         })
         .collect()
+}
+
+/// The matches of camera pair `p` implied by `identities`, sorted by `a`, scored with `S`.
+pub fn identity_matches(identities: &[Identity], p: &ViewPair) -> Vec<Match> {
+    let s = &p.matching.scores;
+    let mut matches: Vec<Match> = identities
+        .iter()
+        .filter_map(|ident| {
+            let a = ident.members.iter().find(|m| m.0 == p.cam_a)?.1;
+            let b = ident.members.iter().find(|m| m.0 == p.cam_b)?.1;
+            let score = *s.get((a, b))?;
+            Some(Match { a, b, score })
+        })
+        .collect();
+    matches.sort_unstable_by_key(|m| m.a);
+    matches
 }
 
 #[cfg(test)]
@@ -496,25 +547,44 @@ mod tests {
     use ndarray::{Array2, array};
     use proptest::prelude::*;
 
+    /// A camera pair matched on `scores` (as `S`; distance = 1 − S, so a calibration is not
+    /// needed), with its SPEC §3 matches at `threshold`.
     fn pair(cam_a: usize, cam_b: usize, scores: Array2<f32>, threshold: f32) -> ViewPair {
-        let matches = hungarian(scores.mapv(|v| 1.0 - v).view())
+        let assignment: Vec<Assigned> = hungarian(scores.mapv(|v| 1.0 - v).view())
             .into_iter()
-            .filter(|&(a, b)| scores[(a, b)] >= threshold)
-            .map(|(a, b)| Match {
+            .map(|(a, b)| Assigned {
                 a,
                 b,
                 score: scores[(a, b)],
+                distance: 1.0 - scores[(a, b)],
+            })
+            .collect();
+        let matches = assignment
+            .iter()
+            .filter(|p| p.score >= threshold)
+            .map(|p| Match {
+                a: p.a,
+                b: p.b,
+                score: p.score,
             })
             .collect();
         ViewPair {
             cam_a,
             cam_b,
-            matching: PairMatching { scores, matches },
+            matching: PairMatching {
+                scores,
+                assignment,
+                matches,
+            },
         }
     }
 
     fn members(ids: &[Identity]) -> Vec<Vec<(usize, usize)>> {
         ids.iter().map(|i| i.members.clone()).collect()
+    }
+
+    fn cfg(t: f32) -> IdentityConfig {
+        IdentityConfig::new(None, t)
     }
 
     #[test]
@@ -525,7 +595,7 @@ mod tests {
             pair(0, 2, s.clone(), 0.4),
             pair(1, 2, s, 0.4),
         ];
-        let ids = build_identities(&[2, 2, 2], &pairs, 0.4);
+        let ids = build_identities(&[2, 2, 2], &pairs, &cfg(0.4));
         assert_eq!(
             members(&ids),
             vec![vec![(0, 0), (1, 0), (2, 0)], vec![(0, 1), (1, 1), (2, 1)]]
@@ -533,7 +603,6 @@ mod tests {
         assert!((ids[0].confidence - 0.9).abs() < 1e-6);
         assert!((ids[1].confidence - 0.8).abs() < 1e-6);
         assert_eq!(ids[1].id, 1);
-        // Derived pairs equal the pairwise matches here.
         let derived = pairs_from_identities(&ids, &pairs);
         for (d, p) in derived.iter().zip(&pairs) {
             assert_eq!(d.matching.matches, p.matching.matches);
@@ -541,9 +610,8 @@ mod tests {
     }
 
     #[test]
-    fn transitivity_repairs_a_pairwise_mistake() {
-        // Cameras A(0), B(1), C(2); persons p, q with A0,B0,C0 = p and A1,B1,C1 = q.
-        // A–B is ambiguous and the Hungarian there swaps the persons.
+    fn third_views_repair_a_pairwise_mistake() {
+        // Persons p = A0,B0,C0 and q = A1,B1,C1; the Hungarian of A–B swaps them.
         let ab = array![[0.60f32, 0.62], [0.62, 0.60]];
         let ac = array![[0.95f32, 0.10], [0.10, 0.95]];
         let bc = array![[0.95f32, 0.10], [0.10, 0.95]];
@@ -563,7 +631,7 @@ mod tests {
             vec![(0, 1), (1, 0)],
             "pairwise A–B is wrong by design"
         );
-        let ids = build_identities(&[2, 2, 2], &pairs, 0.4);
+        let ids = build_identities(&[2, 2, 2], &pairs, &cfg(0.4));
         assert_eq!(
             members(&ids),
             vec![vec![(0, 0), (1, 0), (2, 0)], vec![(0, 1), (1, 1), (2, 1)]]
@@ -576,13 +644,10 @@ mod tests {
             .map(|m| (m.a, m.b))
             .collect();
         assert_eq!(fixed, vec![(0, 0), (1, 1)]);
-        assert!((derived[0].matching.matches[0].score - 0.60).abs() < 1e-6);
     }
 
     #[test]
     fn exclusivity_keeps_one_box_per_camera() {
-        // Camera 1 has two boxes that both look like box 0 of camera 0 and like each other's
-        // counterpart in camera 2: only one of them may join.
         let s01 = array![[0.9f32, 0.85]];
         let s02 = array![[0.9f32]];
         let s12 = array![[0.9f32], [0.88]];
@@ -591,37 +656,48 @@ mod tests {
             pair(0, 2, s02, 0.4),
             pair(1, 2, s12, 0.4),
         ];
-        let ids = build_identities(&[1, 2, 1], &pairs, 0.4);
-        for ident in &ids {
-            let mut cams: Vec<usize> = ident.members.iter().map(|m| m.0).collect();
-            cams.dedup();
-            assert_eq!(cams.len(), ident.members.len(), "{ids:?}");
-        }
+        let ids = build_identities(&[1, 2, 1], &pairs, &cfg(0.4));
         assert_eq!(
             members(&ids),
             vec![vec![(0, 0), (1, 0), (2, 0)], vec![(1, 1)]]
         );
-        // The loser is a singleton whose confidence reflects its strong rival evidence.
-        assert!((ids[1].confidence - (1.0 - 0.88)).abs() < 1e-6);
+        assert_eq!(ids[1].confidence, 1.0, "B1 has no Hungarian partner");
     }
 
     #[test]
-    fn threshold_stops_merging_and_handles_empty_views() {
-        let s = array![[0.3f32]];
-        let pairs = vec![pair(0, 2, s, 0.4)];
-        let ids = build_identities(&[1, 0, 1], &pairs, 0.4);
+    fn threshold_empty_views_and_lone_cameras() {
+        let pairs = vec![pair(0, 2, array![[0.3f32]], 0.4)];
+        let ids = build_identities(&[1, 0, 1], &pairs, &cfg(0.4));
         assert_eq!(members(&ids), vec![vec![(0, 0)], vec![(2, 0)]]);
         assert!((ids[0].confidence - 0.7).abs() < 1e-6);
-        assert!(build_identities(&[0, 0], &[], 0.4).is_empty());
-        // A lone camera: every box is a confident singleton.
-        let ids = build_identities(&[3], &[], 0.4);
+        assert!(build_identities(&[0, 0], &[], &cfg(0.4)).is_empty());
+        let ids = build_identities(&[3], &[], &cfg(0.4));
         assert_eq!(ids.len(), 3);
         assert!(ids.iter().all(|i| i.confidence == 1.0));
     }
 
     #[test]
+    fn calibrated_confidence_keeps_a_lone_match() {
+        // One person per view: S = 1 − d/(d + 1e-6) ≈ 0 drops it; the calibrated
+        // probability of its small distance keeps it.
+        let mut p = pair(0, 1, array![[1e-6f32]], 0.5);
+        p.matching.assignment[0].distance = 0.3;
+        assert!(p.matching.matches.is_empty());
+        let cal = Calibration {
+            distances: vec![0.5, 2.0],
+            probabilities: vec![0.95, 0.05],
+            false_share: 0.5,
+            samples: [100, 100],
+        };
+        let c = IdentityConfig::new(Some(Arc::new(cal)), 0.5);
+        assert_eq!(c.kept(&p.matching).len(), 1);
+        let ids = build_identities(&[1, 1], &[p], &c);
+        assert_eq!(members(&ids), vec![vec![(0, 0), (1, 0)]]);
+        assert!((ids[0].confidence - 0.95).abs() < 1e-6);
+    }
+
+    #[test]
     fn many_cameras_beyond_one_bitset_word() {
-        // 70 cameras with one box each, all mutually similar: one identity of 70 members.
         let c = 70;
         let mut pairs = Vec::new();
         for a in 0..c {
@@ -629,72 +705,115 @@ mod tests {
                 pairs.push(pair(a, b, array![[0.9f32]], 0.4));
             }
         }
-        let ids = build_identities(&vec![1; c], &pairs, 0.4);
+        let ids = build_identities(&vec![1; c], &pairs, &cfg(0.4));
         assert_eq!(ids.len(), 1);
         assert_eq!(ids[0].members.len(), c);
     }
 
-    /// Straightforward O(N³) agglomeration with the same rules and tie-breaks (clusters named
-    /// by their smallest node), to check the cached implementation against.
-    fn naive(sizes: &[usize], pairs: &[ViewPair], threshold: f32) -> Vec<Vec<(usize, usize)>> {
+    #[test]
+    fn bad_pairs_are_ignored_not_a_panic() {
+        let good = pair(0, 1, array![[0.9f32]], 0.4);
+        let mut wrong_shape = pair(0, 1, array![[0.9f32, 0.1]], 0.4);
+        wrong_shape.matching.assignment[0].b = 7;
+        let same_cam = pair(1, 1, array![[0.9f32]], 0.4);
+        let far = pair(0, 9, array![[0.9f32]], 0.4);
+        let mut nan = pair(0, 1, array![[0.9f32]], 0.4);
+        nan.matching.assignment[0].score = f32::NAN;
+        let ids = build_identities(&[1, 1], &[wrong_shape, same_cam, far, good, nan], &cfg(0.4));
+        assert_eq!(members(&ids), vec![vec![(0, 0), (1, 0)]]);
+    }
+
+    /// Straightforward O(N⁴) clustering with the same weights and tie-breaks (clusters named
+    /// by their smallest box), to check the heap-based implementation against.
+    fn naive(
+        sizes: &[usize],
+        pairs: &[ViewPair],
+        cfg: &IdentityConfig,
+    ) -> Vec<Vec<(usize, usize)>> {
         let nodes: Vec<(usize, usize)> = sizes
             .iter()
             .enumerate()
             .flat_map(|(c, &k)| (0..k).map(move |i| (c, i)))
             .collect();
-        let score = |x: (usize, usize), y: (usize, usize)| -> Option<f32> {
+        let partner = |x: (usize, usize), cam: usize| -> Option<(usize, f32)> {
             pairs.iter().find_map(|p| {
-                if (p.cam_a, p.cam_b) == (x.0, y.0) {
-                    Some(p.matching.scores[(x.1, y.1)])
-                } else if (p.cam_a, p.cam_b) == (y.0, x.0) {
-                    Some(p.matching.scores[(y.1, x.1)])
+                if (p.cam_a, p.cam_b) == (x.0, cam) {
+                    let m = p.matching.assignment.iter().find(|m| m.a == x.1)?;
+                    Some((m.b, cfg.confidence(m)))
+                } else if (p.cam_a, p.cam_b) == (cam, x.0) {
+                    let m = p.matching.assignment.iter().find(|m| m.b == x.1)?;
+                    Some((m.a, cfg.confidence(m)))
                 } else {
                     None
                 }
             })
         };
-        let mut clusters: Vec<Vec<usize>> = (0..nodes.len()).map(|i| vec![i]).collect();
-        loop {
-            let mut pick: Option<(f32, usize, usize)> = None;
-            for a in 0..clusters.len() {
-                for b in a + 1..clusters.len() {
-                    let (ca, cb) = (&clusters[a], &clusters[b]);
-                    if ca
-                        .iter()
-                        .any(|&i| cb.iter().any(|&j| nodes[i].0 == nodes[j].0))
-                    {
-                        continue;
-                    }
-                    let (mut sum, mut cnt) = (0f32, 0u32);
-                    for &i in ca {
-                        for &j in cb {
-                            if let Some(v) = score(nodes[i], nodes[j]) {
-                                sum += v;
-                                cnt += 1;
-                            }
+        let pw = |x: (usize, usize), y: (usize, usize)| -> f32 {
+            if x.0 == y.0 {
+                return 0.0;
+            }
+            match partner(x, y.0) {
+                Some((b, c)) if b == y.1 => {
+                    let mut w = c - cfg.threshold;
+                    for cam in 0..sizes.len() {
+                        if cam == x.0 || cam == y.0 {
+                            continue;
+                        }
+                        if let (Some((p, _)), Some((q, _))) = (partner(x, cam), partner(y, cam)) {
+                            w += if p == q {
+                                cfg.support_bonus
+                            } else {
+                                -cfg.dissent_penalty
+                            };
                         }
                     }
-                    if cnt == 0 {
-                        continue;
-                    }
-                    let l = sum / cnt as f32;
-                    if l < threshold {
-                        continue;
-                    }
-                    let (ra, rb) = (ca[0].min(cb[0]), ca[0].max(cb[0]));
-                    let better = match pick {
-                        None => true,
-                        Some((pl, pa, pb)) => {
-                            let (qa, qb) = (clusters[pa][0], clusters[pb][0]);
-                            l > pl || (l == pl && (ra, rb) < (qa.min(qb), qa.max(qb)))
-                        }
+                    w
+                }
+                _ => {
+                    let kept = |z: (usize, usize), cam| {
+                        partner(z, cam).is_some_and(|(_, c)| c >= cfg.threshold)
                     };
-                    if better {
-                        pick = Some((l, a, b));
+                    if kept(x, y.0) || kept(y, x.0) {
+                        -cfg.conflict_penalty
+                    } else {
+                        0.0
                     }
                 }
             }
-            let Some((_, a, b)) = pick else { break };
+        };
+        let linked = |x: (usize, usize), y: (usize, usize)| {
+            x.0 != y.0 && partner(x, y.0).is_some_and(|(b, _)| b == y.1)
+        };
+        let mut clusters: Vec<Vec<usize>> = (0..nodes.len()).map(|i| vec![i]).collect();
+        loop {
+            let mut pick: Option<(f32, usize, usize, (usize, usize))> = None;
+            for a in 0..clusters.len() {
+                for b in a + 1..clusters.len() {
+                    let (ca, cb) = (&clusters[a], &clusters[b]);
+                    let clash = ca
+                        .iter()
+                        .any(|&i| cb.iter().any(|&j| nodes[i].0 == nodes[j].0));
+                    let any_link = ca
+                        .iter()
+                        .any(|&i| cb.iter().any(|&j| linked(nodes[i], nodes[j])));
+                    if clash || !any_link {
+                        continue;
+                    }
+                    let w: f32 = ca
+                        .iter()
+                        .flat_map(|&i| cb.iter().map(move |&j| (i, j)))
+                        .map(|(i, j)| pw(nodes[i], nodes[j]))
+                        .sum();
+                    if w < 0.0 {
+                        continue;
+                    }
+                    let names = (ca[0].min(cb[0]), ca[0].max(cb[0]));
+                    if pick.is_none_or(|(pw, _, _, pn)| w > pw || (w == pw && names < pn)) {
+                        pick = Some((w, a, b, names));
+                    }
+                }
+            }
+            let Some((_, a, b, _)) = pick else { break };
             let moved = clusters.remove(b);
             clusters[a].extend(moved);
             clusters[a].sort_unstable();
@@ -706,9 +825,9 @@ mod tests {
             .collect()
     }
 
-    /// Scores on a 1/64 grid: every partial sum is exact in f32, so both implementations
-    /// see identical linkages (and identical ties).
-    fn check_against_naive(sizes: &[usize], raw: &[u8], t: u8) -> Result<(), TestCaseError> {
+    /// Camera pairs from grid scores (multiples of 1/64, so with the dyadic parameters of
+    /// [`grid_cfg`] every partial sum is exact and both implementations see equal ties).
+    fn grid_pairs(sizes: &[usize], raw: &[u8]) -> Vec<ViewPair> {
         let mut k = 0;
         let mut pairs = Vec::new();
         for a in 0..sizes.len() {
@@ -723,33 +842,137 @@ mod tests {
                 pairs.push(pair(a, b, s, 0.0));
             }
         }
-        let threshold = t as f32 / 64.0;
-        let got = members(&build_identities(sizes, &pairs, threshold));
-        prop_assert_eq!(got, naive(sizes, &pairs, threshold));
-        Ok(())
+        pairs
     }
 
-    proptest! {
-        #[test]
-        fn sparse_agglomeration_equals_naive(
-            sizes in proptest::collection::vec(0usize..7, 2..6),
-            raw in proptest::collection::vec(0u8..=64, 400),
-            t in 0u8..=64,
-        ) {
-            check_against_naive(&sizes, &raw, t)?;
+    fn grid_cfg(t: u8) -> IdentityConfig {
+        IdentityConfig {
+            calibration: None,
+            threshold: t as f32 / 64.0,
+            support_bonus: 0.125,
+            dissent_penalty: 0.0625,
+            conflict_penalty: 0.3125,
         }
     }
 
+    /// Persons with a position; camera `c` sees each person with probability ~0.8 and
+    /// scores boxes by closeness: a consistent scene (every pair's Hungarian is right).
+    fn consistent_scene(
+        cams: usize,
+        people: &[u8],
+        seen: &[bool],
+    ) -> (Vec<usize>, Vec<ViewPair>, Vec<Vec<usize>>) {
+        // views[c] = person index of each box of camera c.
+        let views: Vec<Vec<usize>> = (0..cams)
+            .map(|c| {
+                (0..people.len())
+                    .filter(|&p| seen[(c * people.len() + p) % seen.len()])
+                    .collect()
+            })
+            .collect();
+        let sizes: Vec<usize> = views.iter().map(Vec::len).collect();
+        let mut pairs = Vec::new();
+        for a in 0..cams {
+            for b in a + 1..cams {
+                if sizes[a] == 0 || sizes[b] == 0 {
+                    continue;
+                }
+                let s = Array2::from_shape_fn((sizes[a], sizes[b]), |(i, j)| {
+                    let (p, q) = (views[a][i], views[b][j]);
+                    if p == q {
+                        0.9
+                    } else {
+                        let d = (people[p] as f32 - people[q] as f32).abs() / 255.0;
+                        (0.3 * d).min(0.3)
+                    }
+                });
+                pairs.push(pair(a, b, s, 0.0));
+            }
+        }
+        (sizes, pairs, views)
+    }
+
     proptest! {
-        #![proptest_config(ProptestConfig::with_cases(32))]
-        /// Views wider than the 16-score scan blocks.
         #[test]
-        fn wide_views_equal_naive(
-            sizes in proptest::collection::vec(0usize..40, 2..4),
-            raw in proptest::collection::vec(0u8..=64, 997),
-            t in 16u8..=64,
+        fn heap_clustering_equals_naive(
+            sizes in proptest::collection::vec(0usize..6, 2..6),
+            raw in proptest::collection::vec(0u8..=64, 400),
+            t in 0u8..=64,
         ) {
-            check_against_naive(&sizes, &raw, t)?;
+            let pairs = grid_pairs(&sizes, &raw);
+            let c = grid_cfg(t);
+            let got = build_identities(&sizes, &pairs, &c);
+            prop_assert_eq!(members(&got), naive(&sizes, &pairs, &c));
+            // Camera-exclusive, every box once, deterministic.
+            let mut all: Vec<(usize, usize)> = Vec::new();
+            for ident in &got {
+                let mut cams: Vec<usize> = ident.members.iter().map(|m| m.0).collect();
+                cams.dedup();
+                prop_assert_eq!(cams.len(), ident.members.len());
+                prop_assert!((0.0..=1.0).contains(&ident.confidence));
+                all.extend(&ident.members);
+            }
+            all.sort_unstable();
+            prop_assert_eq!(all.len(), sizes.iter().sum::<usize>());
+            all.dedup();
+            prop_assert_eq!(all.len(), sizes.iter().sum::<usize>());
+            prop_assert_eq!(build_identities(&sizes, &pairs, &c), got);
+        }
+
+        #[test]
+        fn two_cameras_equal_pairwise(
+            n in 0usize..8, m in 0usize..8,
+            raw in proptest::collection::vec(0u8..=64, 64),
+            t in 0u8..=64,
+        ) {
+            let pairs = grid_pairs(&[n, m], &raw);
+            let c = grid_cfg(t);
+            let ids = build_identities(&[n, m], &pairs, &c);
+            for (p, d) in pairs.iter().zip(pairs_from_identities(&ids, &pairs)) {
+                let kept: Vec<_> = c.kept(&p.matching).iter().map(|x| (x.a, x.b)).collect();
+                let got: Vec<_> = d.matching.matches.iter().map(|x| (x.a, x.b)).collect();
+                prop_assert_eq!(got, kept);
+            }
+        }
+
+        #[test]
+        fn consistent_matches_unchanged_and_one_swap_repaired(
+            people in proptest::collection::vec(0u8..=255, 2..7),
+            seen in proptest::collection::vec(proptest::bool::weighted(0.8), 1..40),
+            swap in 0usize..100,
+        ) {
+            let cams = 4;
+            let (sizes, mut pairs, views) = consistent_scene(cams, &people, &seen);
+            let c = IdentityConfig::new(None, 0.5);
+            // Truth: one identity per person seen by any camera.
+            let mut truth: Vec<Vec<(usize, usize)>> = (0..people.len())
+                .map(|p| (0..cams).filter_map(|cam| views[cam].iter().position(|&q| q == p).map(|i| (cam, i))).collect::<Vec<_>>())
+                .filter(|m: &Vec<_>| !m.is_empty())
+                .collect();
+            truth.sort();
+            let mut got = members(&build_identities(&sizes, &pairs, &c));
+            got.sort();
+            prop_assert_eq!(&got, &truth);
+            // Corrupt one pair: swap the partners of two of its matches (both stay kept).
+            if pairs.is_empty() { return Ok(()); }
+            let k = swap % pairs.len();
+            let asg = &mut pairs[k].matching.assignment;
+            if asg.len() < 2 { return Ok(()); }
+            let (x, y) = (swap % asg.len(), (swap / 7 + 1 + swap % asg.len()) % asg.len());
+            if x == y { return Ok(()); }
+            let (bx, by) = (asg[x].b, asg[y].b);
+            asg[x].b = by;
+            asg[y].b = bx;
+            let (pa, pb) = (pairs[k].cam_a, pairs[k].cam_b);
+            // Repairable when both swapped persons are seen by the two other cameras.
+            let persons = [views[pa][pairs[k].matching.assignment[x].a], views[pa][pairs[k].matching.assignment[y].a]];
+            let others: Vec<usize> = (0..cams).filter(|&q| q != pa && q != pb).collect();
+            let witnessed = persons.iter().all(|p| others.iter().all(|&q| views[q].contains(p)));
+            if witnessed {
+                let mut got = members(&build_identities(&sizes, &pairs, &c));
+                got.sort();
+                prop_assert_eq!(got, truth);
+            }
         }
     }
 }

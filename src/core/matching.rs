@@ -27,12 +27,27 @@ pub struct Match {
     pub score: f32,
 }
 
+/// One Hungarian pair, kept or not: box `a` of the first view with box `b` of the second,
+/// its SPEC §3 confidence `score = 1 - D[a, b]` and its raw geometric embedding distance
+/// `distance = Dg[a, b]` (what a [`crate::core::calibration::Calibration`] reads: unlike `S` it
+/// does not depend on the other boxes of the pair).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Assigned {
+    pub a: usize,
+    pub b: usize,
+    pub score: f32,
+    pub distance: f32,
+}
+
 /// The result of matching two views.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PairMatching {
     /// Confidence matrix `S = 1 - D`, shape `[n, m]`.
     pub scores: Array2<f32>,
-    /// Hungarian pairs with `score >= threshold`, sorted by `a`.
+    /// Every Hungarian pair (`min(n, m)` of them), sorted by `a`: the evidence the identities
+    /// are built from.
+    pub assignment: Vec<Assigned>,
+    /// Hungarian pairs with `score >= threshold`, sorted by `a` (SPEC §3 pairwise matching).
     pub matches: Vec<Match>,
 }
 
@@ -290,7 +305,8 @@ fn finite_range(values: &[f32]) -> Option<(f32, f32)> {
 
 /// In place: `dg ← Dg/max(Dg)` or, with appearance, `(1-alpha) Dg/max(Dg) + alpha Da/max(Da)`.
 /// An appearance matrix of a different shape is ignored (geometry only) with a warning.
-fn normalize_in_place(dg: &mut Array2<f32>, da: Option<&Array2<f32>>, alpha: f32) {
+/// Returns the geometric divisor `max(Dg) + NORM_EPS`.
+fn normalize_in_place(dg: &mut Array2<f32>, da: Option<&Array2<f32>>, alpha: f32) -> f32 {
     let da = match da {
         Some(da) if da.dim() != dg.dim() => {
             tracing::warn!(
@@ -302,7 +318,8 @@ fn normalize_in_place(dg: &mut Array2<f32>, da: Option<&Array2<f32>>, alpha: f32
         }
         other => other,
     };
-    let inv_g = 1.0 / (finite_max(dg) + NORM_EPS);
+    let scale = finite_max(dg) + NORM_EPS;
+    let inv_g = 1.0 / scale;
     match da {
         None => dg.mapv_inplace(|v| v * inv_g),
         Some(da) => {
@@ -313,6 +330,7 @@ fn normalize_in_place(dg: &mut Array2<f32>, da: Option<&Array2<f32>>, alpha: f32
                 .for_each(|g, &a| *g = wg * *g + wa * a);
         }
     }
+    scale
 }
 
 /// `D = Dg/max(Dg)` or, with appearance, `(1-alpha) Dg/max(Dg) + alpha Da/max(Da)` (SPEC §3).
@@ -320,7 +338,7 @@ fn normalize_in_place(dg: &mut Array2<f32>, da: Option<&Array2<f32>>, alpha: f32
 /// only when `da` is given (and has the same shape as `dg`).
 pub fn normalized_distance(dg: &Array2<f32>, da: Option<&Array2<f32>>, alpha: f32) -> Array2<f32> {
     let mut d = dg.clone();
-    normalize_in_place(&mut d, da, alpha);
+    let _ = normalize_in_place(&mut d, da, alpha);
     d
 }
 
@@ -483,19 +501,41 @@ pub fn match_from_distances(
     alpha: f32,
     threshold: f32,
 ) -> PairMatching {
-    normalize_in_place(&mut dg, da, alpha);
+    // With appearance, D no longer scales back to Dg: keep the raw geometric values of the
+    // (rare) fused case; without it, Dg = D · scale.
+    let raw = da.map(|_| dg.clone());
+    let scale = normalize_in_place(&mut dg, da, alpha);
     let pairs = hungarian(dg.view());
+    let assignment: Vec<Assigned> = pairs
+        .into_iter()
+        .map(|(a, b)| {
+            let d = dg[(a, b)];
+            let distance = match &raw {
+                Some(g) => g[(a, b)],
+                None => d * scale,
+            };
+            Assigned {
+                a,
+                b,
+                score: 1.0 - d,
+                distance,
+            }
+        })
+        .collect();
     // S = 1 - D, in place.
     dg.mapv_inplace(|v| 1.0 - v);
-    let matches = pairs
-        .into_iter()
-        .filter_map(|(a, b)| {
-            let score = dg[(a, b)];
-            (score >= threshold).then_some(Match { a, b, score })
+    let matches = assignment
+        .iter()
+        .filter(|p| p.score >= threshold)
+        .map(|p| Match {
+            a: p.a,
+            b: p.b,
+            score: p.score,
         })
         .collect();
     PairMatching {
         scores: dg,
+        assignment,
         matches,
     }
 }

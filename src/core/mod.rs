@@ -2,6 +2,7 @@
 //! distances, Hungarian matching and global identities.
 
 pub mod association;
+pub mod calibration;
 pub mod embeddings;
 pub mod identity;
 pub mod matching;

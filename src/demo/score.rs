@@ -124,6 +124,7 @@ pub fn pair_records(
                 ids_b: ids_b.clone(),
                 scores,
                 matches,
+                identity_matches: None,
             };
             record.validate()?;
             records.push(record);

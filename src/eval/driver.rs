@@ -3,7 +3,9 @@
 use crate::core::association::{
     AssociationConfig, FrameAssociation, Mode, associate_frame, embed_frame,
 };
+use crate::core::identity::identity_matches;
 use crate::core::{Frame, SceneSpec};
+use crate::eval::identities::IdentityStats;
 use crate::eval::metrics::{Metrics, PairRecord, compute_metrics};
 use crate::io::Recording;
 use crate::model::Encoder;
@@ -14,14 +16,17 @@ use crate::{Error, Result};
 pub struct EvalRun {
     /// Which matches were scored.
     pub mode: Mode,
-    /// Confidence threshold used.
+    /// Threshold used: on `S` for [`Mode::Pairwise`], on the identity confidence otherwise.
     pub threshold: f32,
     /// Appearance weight used (only relevant when the data has appearance vectors).
     pub alpha: f32,
     /// SPEC §5 metrics over all image pairs.
     pub metrics: Metrics,
-    /// One record per image pair (the `--dump-pairs` lines).
+    /// One record per image pair (the `--dump-pairs` lines; they carry the identity matches
+    /// too).
     pub records: Vec<PairRecord>,
+    /// Whole-identity scores of the identities built under this setting.
+    pub identities: IdentityStats,
 }
 
 /// The ground-truth ids of every box of a frame; an error naming the box when one is missing.
@@ -54,7 +59,8 @@ pub fn frame_ids(scene: &SceneSpec, frame: &Frame) -> Result<Vec<Option<Vec<u64>
         .collect()
 }
 
-/// The image-pair records of one associated frame (`ids` from [`frame_ids`]).
+/// The image-pair records of one associated frame (`ids` from [`frame_ids`]), each with the
+/// matches implied by the frame's identities beside the pairs' own.
 pub fn pair_records(
     scene: &SceneSpec,
     ids: &[Option<Vec<u64>>],
@@ -85,18 +91,26 @@ pub fn pair_records(
                     .iter()
                     .map(|m| (m.a, m.b, m.score))
                     .collect(),
+                identity_matches: Some(
+                    identity_matches(&assoc.identities, p)
+                        .iter()
+                        .map(|m| (m.a, m.b, m.score))
+                        .collect(),
+                ),
             }
         })
         .collect()
 }
 
 /// Evaluates `encoder` on `recording` under several settings at once: each frame is
-/// embedded once and associated once per setting (mode, threshold). Every box must carry a
-/// ground-truth id. Image pairs are all camera pairs of a frame with boxes on both sides.
+/// embedded once and associated once per setting `(mode, threshold)`, the other parameters
+/// taken from `base`. The threshold is SPEC §3's on `S` for [`Mode::Pairwise`] and the
+/// identity threshold for the other modes. Every box must carry a ground-truth id. Image
+/// pairs are all camera pairs of a frame with boxes on both sides.
 pub fn evaluate_settings(
     encoder: &mut dyn Encoder,
     recording: &Recording,
-    alpha: f32,
+    base: &AssociationConfig,
     settings: &[(Mode, f32)],
 ) -> Result<Vec<EvalRun>> {
     if settings.is_empty() {
@@ -108,46 +122,61 @@ pub fn evaluate_settings(
             format!("must be finite, got {t}"),
         ));
     }
+    let configs: Vec<AssociationConfig> = settings
+        .iter()
+        .map(|&(mode, t)| {
+            let mut cfg = base.clone();
+            cfg.mode = mode;
+            match mode {
+                Mode::Pairwise => cfg.threshold = t,
+                Mode::Calibrated | Mode::Identities => cfg.identity.threshold = t,
+            }
+            cfg
+        })
+        .collect();
     let scene = &recording.scene;
     let mut records: Vec<Vec<PairRecord>> = vec![Vec::new(); settings.len()];
+    let mut stats = vec![IdentityStats::default(); settings.len()];
     for frame in &recording.frames {
         let ids = frame_ids(scene, frame)?;
         let embeddings = embed_frame(encoder, scene, frame)?;
-        for (k, &(mode, threshold)) in settings.iter().enumerate() {
-            let cfg = AssociationConfig {
-                threshold,
-                alpha,
-                mode,
-            };
-            let assoc = associate_frame(frame, embeddings.clone(), &cfg);
+        for (k, cfg) in configs.iter().enumerate() {
+            let assoc = associate_frame(frame, embeddings.clone(), cfg);
             records[k].extend(pair_records(scene, &ids, &assoc));
+            stats[k].add_frame(&assoc.identities, &ids);
         }
     }
     Ok(settings
         .iter()
         .zip(records)
-        .map(|(&(mode, threshold), records)| {
+        .zip(stats)
+        .map(|((&(mode, threshold), records), identities)| {
             let metrics = compute_metrics(&records);
             tracing::debug!(%mode, threshold, pairs = metrics.pairs, "evaluated");
             EvalRun {
                 mode,
                 threshold,
-                alpha,
+                alpha: base.alpha,
                 metrics,
                 records,
+                identities,
             }
         })
         .collect())
 }
 
-/// Evaluates `encoder` on `recording` with one configuration: the metrics and one record
-/// per image pair.
+/// Evaluates `encoder` on `recording` with one configuration: the metrics of `cfg.mode`'s
+/// matches and one record per image pair.
 pub fn evaluate(
     encoder: &mut dyn Encoder,
     recording: &Recording,
     cfg: &AssociationConfig,
 ) -> Result<(Metrics, Vec<PairRecord>)> {
-    let mut runs = evaluate_settings(encoder, recording, cfg.alpha, &[(cfg.mode, cfg.threshold)])?;
+    let t = match cfg.mode {
+        Mode::Pairwise => cfg.threshold,
+        Mode::Calibrated | Mode::Identities => cfg.identity.threshold,
+    };
+    let mut runs = evaluate_settings(encoder, recording, cfg, &[(cfg.mode, t)])?;
     let run = runs
         .pop()
         .ok_or_else(|| Error::invalid("settings", "no result"))?;
@@ -205,12 +234,20 @@ mod tests {
         let both = evaluate_settings(
             &mut BottomCentre,
             &rec,
-            0.1,
-            &[(Mode::Pairwise, 0.4), (Mode::Global, 0.4)],
+            &AssociationConfig::default(),
+            &[(Mode::Pairwise, 0.4), (Mode::Identities, 0.4)],
         )
         .unwrap();
         assert_eq!(both[1].metrics.acc, 0.75);
         assert_eq!(both[0].records.len(), both[1].records.len());
+        // The pairwise records carry the identity matches, scored the same way.
+        let ids: Vec<PairRecord> = both[0]
+            .records
+            .iter()
+            .map(|r| r.as_identities().unwrap())
+            .collect();
+        assert_eq!(compute_metrics(&ids), both[1].metrics);
+        assert_eq!(both[1].identities.frames, 2);
     }
 
     #[test]

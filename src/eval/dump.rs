@@ -70,6 +70,7 @@ mod tests {
             ids_b: vec![2],
             scores: vec![0.25, 0.75],
             matches: vec![(1, 0, 0.75)],
+            identity_matches: Some(vec![(1, 0, 0.75)]),
         };
         let mut buf = Vec::new();
         write_pairs(&mut buf, &[r.clone(), r.clone()], "mem").unwrap();

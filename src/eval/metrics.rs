@@ -11,7 +11,8 @@ use crate::{Error, Result};
 
 /// Everything needed to score one image pair (camera `a` < camera `b` of one frame); also the
 /// line format of `crossview eval --dump-pairs`:
-/// `{"frame_id","camera_a","camera_b","ids_a":[...],"ids_b":[...],"scores":[...],"matches":[[i,j,s],...]}`.
+/// `{"frame_id","camera_a","camera_b","ids_a":[...],"ids_b":[...],"scores":[...],"matches":[[i,j,s],...],"identity_matches":[[i,j,s],...]}`
+/// (`identity_matches` optional: the matches implied by the frame's identities).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct PairRecord {
     pub frame_id: u64,
@@ -27,6 +28,10 @@ pub struct PairRecord {
     pub scores: Vec<f32>,
     /// Kept matches `(i, j, s)`: box `i` of view a with box `j` of view b, confidence `s`.
     pub matches: Vec<(usize, usize, f32)>,
+    /// **[ours]** The matches implied by the frame's identities, same form (absent in dumps
+    /// written before identities were reported).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub identity_matches: Option<Vec<(usize, usize, f32)>>,
 }
 
 impl PairRecord {
@@ -56,32 +61,53 @@ impl PairRecord {
                 "must be finite",
             ));
         }
-        let mut used_a = vec![false; n];
-        let mut used_b = vec![false; m];
-        for (k, &(i, j, s)) in self.matches.iter().enumerate() {
-            if i >= n || j >= m {
-                return Err(Error::invalid(
-                    field(&format!("matches[{k}]")),
-                    format!("index ({i}, {j}) outside {n}×{m}"),
-                ));
-            }
-            if used_a[i] || used_b[j] {
-                return Err(Error::invalid(
-                    field(&format!("matches[{k}]")),
-                    format!("box {i} or {j} matched twice"),
-                ));
-            }
-            if !s.is_finite() {
-                return Err(Error::invalid(
-                    field(&format!("matches[{k}]")),
-                    "score must be finite",
-                ));
-            }
-            used_a[i] = true;
-            used_b[j] = true;
+        check_matches(&self.matches, n, m, |k| field(&format!("matches[{k}]")))?;
+        if let Some(im) = &self.identity_matches {
+            check_matches(im, n, m, |k| field(&format!("identity_matches[{k}]")))?;
         }
         Ok(())
     }
+
+    /// This record with its identity matches as the scored matches (`None` when it has
+    /// none), so identities are scored exactly like pairwise matching.
+    pub fn as_identities(&self) -> Option<PairRecord> {
+        Some(PairRecord {
+            matches: self.identity_matches.clone()?,
+            identity_matches: None,
+            ..self.clone()
+        })
+    }
+}
+
+/// Matches index existing boxes, use each box at most once and carry finite scores.
+fn check_matches(
+    matches: &[(usize, usize, f32)],
+    n: usize,
+    m: usize,
+    field: impl Fn(usize) -> String,
+) -> Result<()> {
+    let mut used_a = vec![false; n];
+    let mut used_b = vec![false; m];
+    for (k, &(i, j, s)) in matches.iter().enumerate() {
+        if i >= n || j >= m {
+            return Err(Error::invalid(
+                field(k),
+                format!("index ({i}, {j}) outside {n}×{m}"),
+            ));
+        }
+        if used_a[i] || used_b[j] {
+            return Err(Error::invalid(
+                field(k),
+                format!("box {i} or {j} matched twice"),
+            ));
+        }
+        if !s.is_finite() {
+            return Err(Error::invalid(field(k), "score must be finite"));
+        }
+        used_a[i] = true;
+        used_b[j] = true;
+    }
+    Ok(())
 }
 
 /// SPEC §5 metrics (fractions in [0, 1]) and the counts behind them.
@@ -291,6 +317,7 @@ mod tests {
             ids_b,
             scores,
             matches,
+            identity_matches: None,
         }
     }
 

@@ -3,10 +3,12 @@
 //! - [`metrics`]: per-image-pair records and the SPEC §5 metrics over them.
 //! - [`driver`]: run an encoder over a recording with ids and produce the records.
 //! - [`dump`]: the `--dump-pairs` JSON Lines file (write and read back).
+//! - [`identities`]: whole-identity scores (frames exactly right, precision by confidence).
 //! - [`report`]: the printed table and the JSON report.
 
 pub mod driver;
 pub mod dump;
+pub mod identities;
 pub mod metrics;
 pub mod report;
 

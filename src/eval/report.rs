@@ -5,6 +5,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::eval::driver::EvalRun;
+use crate::eval::identities::IdentityStats;
 use crate::eval::metrics::Metrics;
 use crate::{Error, Result};
 
@@ -64,7 +65,8 @@ pub fn format_table(rows: &[TableRow]) -> String {
 /// One setting in the JSON report.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ReportRun {
-    /// `pairwise`, `global`, or `from-dump` (setting unknown).
+    /// `pairwise`, `calibrated`, `identities`, or `from-dump` / `from-dump-identities`
+    /// (setting unknown).
     pub mode: String,
     /// Confidence threshold (absent when recomputed from a dump).
     pub threshold: Option<f32>,
@@ -72,6 +74,9 @@ pub struct ReportRun {
     pub alpha: Option<f32>,
     /// SPEC §5 metrics as fractions in [0, 1], plus counts.
     pub metrics: Metrics,
+    /// Whole-identity scores (identity rows; absent when recomputed from a dump).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub identities: Option<IdentityStats>,
 }
 
 /// The `--report` JSON document.
@@ -100,6 +105,8 @@ impl EvalReport {
                     threshold: Some(r.threshold),
                     alpha: Some(r.alpha),
                     metrics: r.metrics,
+                    identities: (r.mode == crate::core::association::Mode::Identities)
+                        .then_some(r.identities),
                 })
                 .collect(),
         }

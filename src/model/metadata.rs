@@ -1,7 +1,11 @@
 //! The model file's `metadata_props` (SPEC §8): cameras, threshold, alpha, version and any
 //! extra provenance (training data, steps, validation scores).
 use std::collections::BTreeMap;
+use std::sync::Arc;
 
+use crate::core::association::{AssociationConfig, Mode};
+use crate::core::calibration::Calibration;
+use crate::core::identity::IdentityConfig;
 use crate::core::{CameraSpec, SceneSpec};
 use crate::{Error, Result};
 
@@ -15,6 +19,12 @@ pub const KEY_ALPHA: &str = "crossview.alpha";
 pub const KEY_VERSION: &str = "crossview.version";
 /// Optional: the scene name the model was built for (an `extra` entry by convention).
 pub const KEY_SCENE: &str = "crossview.scene";
+/// **[ours]** Optional: the label-free calibration `P(same | distance)` (JSON, see
+/// [`Calibration`]).
+pub const KEY_CALIBRATION: &str = "crossview.calibration";
+/// **[ours]** Optional: the threshold on the identity confidence (decimal string in [0, 1]);
+/// without it identities use [`KEY_THRESHOLD`].
+pub const KEY_MATCH_THRESHOLD: &str = "crossview.match_threshold";
 
 /// Parsed, validated model metadata.
 #[derive(Debug, Clone, PartialEq)]
@@ -27,6 +37,10 @@ pub struct ModelMetadata {
     pub alpha: f32,
     /// Model version string.
     pub version: String,
+    /// **[ours]** Calibrated match confidence, when the model has one.
+    pub calibration: Option<Arc<Calibration>>,
+    /// **[ours]** Threshold on the identity confidence (`None`: [`Self::threshold`]).
+    pub match_threshold: Option<f32>,
     /// Any other `crossview.*` or free-form entries, kept verbatim.
     pub extra: BTreeMap<String, String>,
 }
@@ -40,7 +54,26 @@ impl ModelMetadata {
             threshold: 0.4,
             alpha: 0.1,
             version: env!("CARGO_PKG_VERSION").to_string(),
+            calibration: None,
+            match_threshold: None,
             extra: BTreeMap::new(),
+        }
+    }
+
+    /// The threshold identities use: [`Self::match_threshold`], else [`Self::threshold`].
+    pub fn identity_threshold(&self) -> f32 {
+        self.match_threshold.unwrap_or(self.threshold)
+    }
+
+    /// The association settings this model file asks for: SPEC §3 threshold and alpha for
+    /// the pairwise matches, and identities scored with the model's calibration (when it has
+    /// one) at [`Self::identity_threshold`].
+    pub fn association_config(&self) -> AssociationConfig {
+        AssociationConfig {
+            threshold: self.threshold,
+            alpha: self.alpha,
+            mode: Mode::Pairwise,
+            identity: IdentityConfig::new(self.calibration.clone(), self.identity_threshold()),
         }
     }
 
@@ -87,6 +120,18 @@ impl ModelMetadata {
         if self.version.trim().is_empty() {
             return Err(bad(KEY_VERSION, "is empty".into()));
         }
+        if let Some(t) = self.match_threshold
+            && (!t.is_finite() || !(0.0..=1.0).contains(&t))
+        {
+            return Err(bad(
+                KEY_MATCH_THRESHOLD,
+                format!("must be within [0, 1], got {t}"),
+            ));
+        }
+        if let Some(c) = &self.calibration {
+            c.validate()
+                .map_err(|e| bad(KEY_CALIBRATION, e.to_string()))?;
+        }
         Ok(())
     }
 
@@ -99,6 +144,15 @@ impl ModelMetadata {
         props.insert(KEY_THRESHOLD.into(), self.threshold.to_string());
         props.insert(KEY_ALPHA.into(), self.alpha.to_string());
         props.insert(KEY_VERSION.into(), self.version.clone());
+        props.remove(KEY_CALIBRATION);
+        props.remove(KEY_MATCH_THRESHOLD);
+        if let Some(c) = &self.calibration {
+            let json = serde_json::to_string(c.as_ref()).expect("Calibration always serializes");
+            props.insert(KEY_CALIBRATION.into(), json);
+        }
+        if let Some(t) = self.match_threshold {
+            props.insert(KEY_MATCH_THRESHOLD.into(), t.to_string());
+        }
         props
     }
 
@@ -127,15 +181,41 @@ impl ModelMetadata {
                 )
             })
         };
+        let calibration = props
+            .get(KEY_CALIBRATION)
+            .map(|raw| {
+                serde_json::from_str::<Calibration>(raw).map_err(|e| {
+                    Error::model(
+                        source_name,
+                        format!("{KEY_CALIBRATION}: not a calibration table: {e}"),
+                    )
+                })
+            })
+            .transpose()?
+            .map(Arc::new);
+        let match_threshold = props
+            .contains_key(KEY_MATCH_THRESHOLD)
+            .then(|| unit(KEY_MATCH_THRESHOLD))
+            .transpose()?;
         let meta = ModelMetadata {
             cameras,
             threshold: unit(KEY_THRESHOLD)?,
             alpha: unit(KEY_ALPHA)?,
             version: get(KEY_VERSION)?.clone(),
+            calibration,
+            match_threshold,
             extra: props
                 .iter()
                 .filter(|(k, _)| {
-                    ![KEY_CAMERAS, KEY_THRESHOLD, KEY_ALPHA, KEY_VERSION].contains(&k.as_str())
+                    ![
+                        KEY_CAMERAS,
+                        KEY_THRESHOLD,
+                        KEY_ALPHA,
+                        KEY_VERSION,
+                        KEY_CALIBRATION,
+                        KEY_MATCH_THRESHOLD,
+                    ]
+                    .contains(&k.as_str())
                 })
                 .map(|(k, v)| (k.clone(), v.clone()))
                 .collect(),
@@ -171,6 +251,19 @@ mod tests {
         let back = ModelMetadata::from_props("m.onnx", &m.to_props()).unwrap();
         assert_eq!(back, m);
         assert_eq!(back.scene("s").cameras.len(), 2);
+        assert_eq!(back.association_config().identity.threshold, m.threshold);
+        m.calibration = Some(Arc::new(Calibration {
+            distances: vec![1.0, 2.0],
+            probabilities: vec![0.9, 0.1],
+            false_share: 0.5,
+            samples: [60, 60],
+        }));
+        m.match_threshold = Some(0.25);
+        let back = ModelMetadata::from_props("m.onnx", &m.to_props()).unwrap();
+        assert_eq!(back, m);
+        let cfg = back.association_config();
+        assert_eq!(cfg.identity.threshold, 0.25);
+        assert!(cfg.identity.calibration.is_some());
     }
 
     fn err_of(props: &BTreeMap<String, String>) -> String {
@@ -195,6 +288,12 @@ mod tests {
             (KEY_CAMERAS, r#"[{"name":"","width":1,"height":1}]"#),
             (KEY_CAMERAS, r#"[{"name":"a","width":0,"height":1}]"#),
             (KEY_VERSION, " "),
+            (KEY_MATCH_THRESHOLD, "2"),
+            (KEY_CALIBRATION, "{}"),
+            (
+                KEY_CALIBRATION,
+                r#"{"distances":[1,2],"probabilities":[0.1,0.9],"false_share":0.5,"samples":[1,1]}"#,
+            ),
         ] {
             let mut p = good.clone();
             p.insert(key.into(), value.into());

@@ -445,3 +445,14 @@ mod tests {
         assert!(bad.validate().is_err());
     }
 }
+
+/// The plain-Rust forward pass as an [`crate::model::Encoder`] (used where a model must be run
+/// without ONNX Runtime, e.g. calibrating right after training).
+impl crate::model::Encoder for EncoderWeights {
+    fn embed(&mut self, boxes: &[[f32; 4]], cameras: &[i64]) -> Result<Array2<f32>> {
+        self.forward(boxes, cameras)
+    }
+    fn dim(&self) -> usize {
+        self.width()
+    }
+}

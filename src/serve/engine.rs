@@ -1,34 +1,24 @@
 //! Association of one synchronized frame: every box of the frame embedded in one encoder call
-//! ([`embed_frame`]), then the method's pairwise matching and global identities
-//! ([`associate_frame`]).
+//! ([`embed_frame`]), then the frame's identities ([`frame_identities`]) — the only thing the
+//! service returns, so nothing else is built.
 use crate::Result;
-use crate::core::association::{AssociationConfig, Mode, associate_frame, embed_frame};
+use crate::core::association::{AssociationConfig, embed_frame, frame_identities};
 use crate::core::identity::Identity;
 use crate::core::{Frame, SceneSpec};
 use crate::model::Encoder;
 
-/// The association settings of a scene (from its model metadata).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct EngineConfig {
-    /// Confidence threshold (SPEC §3).
-    pub threshold: f32,
-    /// Appearance fusion weight (SPEC §3).
-    pub alpha: f32,
-}
+/// The association settings of a scene (from its model metadata, see
+/// [`crate::model::ModelMetadata::association_config`]).
+pub type EngineConfig = AssociationConfig;
 
-/// Associates `frame` of `scene`: returns its global identities. Runs the encoder once for all
+/// Associates `frame` of `scene`: returns its identities. Runs the encoder once for all
 /// boxes of the frame. Blocking (call it off the async runtime).
 pub fn associate(
     encoder: &mut dyn Encoder,
     scene: &SceneSpec,
     frame: &Frame,
-    config: EngineConfig,
+    config: &EngineConfig,
 ) -> Result<Vec<Identity>> {
     let embeddings = embed_frame(encoder, scene, frame)?;
-    let cfg = AssociationConfig {
-        threshold: config.threshold,
-        alpha: config.alpha,
-        mode: Mode::Pairwise,
-    };
-    Ok(associate_frame(frame, embeddings, &cfg).identities)
+    Ok(frame_identities(frame, &embeddings, config))
 }

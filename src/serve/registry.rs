@@ -1,7 +1,6 @@
 //! Scene registry: loads SPEC §8 model files into scenes (name, cameras from the metadata,
 //! threshold, alpha, version) and their encoders.
 use super::config::{Limits, ModelSpec};
-use super::engine::EngineConfig;
 use super::scene::SceneInfo;
 use crate::core::SceneSpec;
 use crate::model::{Encoder, ModelMetadata, OnnxEncoder};
@@ -24,10 +23,7 @@ pub fn scene_info(name: &str, meta: &ModelMetadata, limits: &Limits) -> Result<S
             name: name.to_string(),
             cameras: meta.cameras.clone(),
         },
-        engine: EngineConfig {
-            threshold: meta.threshold,
-            alpha: meta.alpha,
-        },
+        engine: meta.association_config(),
         version: meta.version.clone(),
     })
 }

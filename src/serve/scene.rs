@@ -30,7 +30,7 @@ pub const MAX_MAGNITUDE: f32 = 1e6;
 pub struct SceneInfo {
     /// Name and cameras.
     pub spec: SceneSpec,
-    /// Threshold and alpha.
+    /// Association settings (SPEC §3 threshold and alpha, identity confidence).
     pub engine: EngineConfig,
     /// Model version string.
     pub version: String,
@@ -460,7 +460,7 @@ impl Worker {
         let spec = &self.info.spec;
         let t = Instant::now();
         let encoder = self.encoder.as_mut();
-        let engine = self.info.engine;
+        let engine = &self.info.engine;
         // A bug in the method must not take the scene down with it.
         let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
             engine::associate(encoder, spec, frame, engine)

@@ -6,8 +6,10 @@
 //! - [`model`]: the candle encoder + decoder, convertible to [`crate::model::EncoderWeights`].
 //! - [`losses`]: synchronization, re-projection and edge losses, batched over triplets.
 //! - [`adam`]: the optimiser, with checkpointable state.
+//! - [`calibrate`]: **[ours]** label-free `P(same person | distance)` for a trained encoder.
 
 pub mod adam;
+pub mod calibrate;
 pub mod checkpoint;
 pub mod clean;
 pub mod curve;

@@ -3,7 +3,7 @@
 //! data (SPEC §3: the paper picks it from 0.0–0.9).
 use ndarray::Array2;
 
-use crate::core::association::Mode;
+use crate::core::association::{AssociationConfig, Mode};
 use crate::eval::driver::evaluate_settings;
 use crate::io::Recording;
 use crate::model::Encoder;
@@ -99,7 +99,11 @@ impl EvalValidator {
             .iter()
             .map(|&t| (Mode::Pairwise, t))
             .collect();
-        let runs = evaluate_settings(encoder, &self.recording, self.alpha, &settings)?;
+        let base = AssociationConfig {
+            alpha: self.alpha,
+            ..AssociationConfig::default()
+        };
+        let runs = evaluate_settings(encoder, &self.recording, &base, &settings)?;
         Ok(runs
             .iter()
             .map(|r| ValScores {
