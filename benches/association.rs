@@ -1,10 +1,13 @@
-//! Association cost of one WILDTRACK-sized frame (7 cameras × 35 boxes, 768-dim embeddings):
-//! the 21 pairwise matchings, the global-identity step, and the whole `associate_frame`.
+//! Association cost of one WILDTRACK-sized frame (7 cameras × 35 boxes, 768- and 64-dim
+//! embeddings): the 21 pairwise matchings, the identity step, the whole `associate_frame`, and
+//! the service's path (`frame_identities`).
 use std::hint::black_box;
 
 use criterion::measurement::{Measurement, ValueFormatter, WallTime};
 use criterion::{BatchSize, Criterion, Throughput, criterion_group, criterion_main};
-use crossview::core::association::{AssociationConfig, Mode, ViewPair, associate_frame};
+use crossview::core::association::{
+    AssociationConfig, Mode, ViewPair, associate_frame, frame_identities,
+};
 use crossview::core::identity::build_identities;
 use crossview::core::matching::{
     all_pairs_distances, euclidean_distances_with_norms, hungarian, match_from_distances,
@@ -18,13 +21,12 @@ use rand_distr::StandardNormal;
 
 const CAMERAS: usize = 7;
 const BOXES: usize = 35;
-const DIM: usize = 768;
 
 /// Embeddings of 35 persons seen by every camera: a per-person vector plus per-view noise,
 /// rows shuffled per camera (so the matcher has real work to do).
-fn frame_embeddings() -> (Frame, Vec<Option<Array2<f32>>>) {
+fn frame_embeddings(dim: usize) -> (Frame, Vec<Option<Array2<f32>>>) {
     let mut rng = ChaCha8Rng::seed_from_u64(7);
-    let persons = Array2::from_shape_fn((BOXES, DIM), |_| rng.sample::<f32, _>(StandardNormal));
+    let persons = Array2::from_shape_fn((BOXES, dim), |_| rng.sample::<f32, _>(StandardNormal));
     let mut frame = Frame::new(0, CAMERAS);
     let mut embs = Vec::new();
     for c in 0..CAMERAS {
@@ -32,7 +34,7 @@ fn frame_embeddings() -> (Frame, Vec<Option<Array2<f32>>>) {
         for i in (1..BOXES).rev() {
             order.swap(i, rng.random_range(0..=i));
         }
-        let e = Array2::from_shape_fn((BOXES, DIM), |(i, k)| {
+        let e = Array2::from_shape_fn((BOXES, dim), |(i, k)| {
             persons[(order[i], k)] + 0.7 * rng.sample::<f32, _>(StandardNormal)
         });
         embs.push(Some(e));
@@ -131,15 +133,17 @@ impl Measurement for OnCpu {
 }
 
 fn bench_wall(c: &mut Criterion<WallTime>) {
-    bench(c, "wildtrack_frame_7x35x768");
+    bench(c, "wildtrack_frame_7x35x768", 768);
+    bench(c, "wildtrack_frame_7x35x64", 64);
 }
 
 fn bench_on_cpu(c: &mut Criterion<OnCpu>) {
-    bench(c, "wildtrack_frame_7x35x768_oncpu");
+    bench(c, "wildtrack_frame_7x35x768_oncpu", 768);
+    bench(c, "wildtrack_frame_7x35x64_oncpu", 64);
 }
 
-fn bench<M: Measurement>(c: &mut Criterion<M>, group: &str) {
-    let (frame, per_view) = frame_embeddings();
+fn bench<M: Measurement>(c: &mut Criterion<M>, group: &str, dim: usize) {
+    let (frame, per_view) = frame_embeddings(dim);
     let embs = FrameEmbeddings::from_views(&per_view).unwrap();
     let cfg = AssociationConfig::default();
     let sizes = vec![BOXES; CAMERAS];
@@ -197,6 +201,9 @@ fn bench<M: Measurement>(c: &mut Criterion<M>, group: &str) {
             )
         });
     }
+    g.bench_function("frame_identities", |b| {
+        b.iter(|| black_box(frame_identities(&frame, black_box(&embs), &cfg)))
+    });
     g.finish();
 }
 

@@ -661,7 +661,9 @@ mod tests {
             members(&ids),
             vec![vec![(0, 0), (1, 0), (2, 0)], vec![(1, 1)]]
         );
-        assert_eq!(ids[1].confidence, 1.0, "B1 has no Hungarian partner");
+        assert_eq!(ids[1].confidence, 0.5, "B1 has no Hungarian partner: a coin toss");
+        // The full identity: mean pair confidence 0.9, nothing missing.
+        assert!((ids[0].confidence - 0.9).abs() < 1e-6);
     }
 
     #[test]

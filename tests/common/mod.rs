@@ -81,8 +81,25 @@ pub struct TestServer {
 pub async fn start(configure: impl FnOnce(&mut ServeConfig)) -> TestServer {
     let dir = tempfile::tempdir().expect("tempdir");
     let model = export_model(dir.path(), "lab");
+    let models = vec![ModelSpec::parse(model.to_str().unwrap()).unwrap()];
+    serve_in(dir, models, configure).await
+}
+
+/// Starts a server with the scenes of `models`; `configure` adjusts the configuration.
+pub async fn start_with(
+    models: Vec<ModelSpec>,
+    configure: impl FnOnce(&mut ServeConfig),
+) -> TestServer {
+    serve_in(tempfile::tempdir().expect("tempdir"), models, configure).await
+}
+
+async fn serve_in(
+    dir: tempfile::TempDir,
+    models: Vec<ModelSpec>,
+    configure: impl FnOnce(&mut ServeConfig),
+) -> TestServer {
     let mut config = ServeConfig {
-        models: vec![ModelSpec::parse(model.to_str().unwrap()).unwrap()],
+        models,
         ..ServeConfig::default()
     };
     configure(&mut config);
