@@ -21,6 +21,7 @@ impl From<Error> for Status {
             Error::UnknownScene(_) | Error::UnknownCamera { .. } => Code::NotFound,
             Error::LateBatch { .. } => Code::FailedPrecondition,
             Error::DuplicateBatch { .. } => Code::AlreadyExists,
+            Error::FrameOutOfRange { .. } => Code::OutOfRange,
             Error::ResourceExhausted(_) => Code::ResourceExhausted,
             Error::Unauthenticated(_) => Code::Unauthenticated,
             Error::Unavailable(_) => Code::Unavailable,
@@ -28,7 +29,7 @@ impl From<Error> for Status {
                 Code::Internal
             }
         };
-        Status::new(code, e.to_string())
+        Status::new(code, super::truncate_echo(&e.to_string()))
     }
 }
 

@@ -162,10 +162,16 @@ impl Service {
     /// Graceful shutdown: stops intake, flushes every scene's pending frames as partial results,
     /// waits for them to be published and closes the result streams. Blocking.
     pub fn close(&self) {
+        self.close_by(None);
+    }
+
+    /// [`close`](Self::close), but frames still queued at `deadline` are published with an
+    /// error instead of being associated (shutdown respects its grace period).
+    pub fn close_by(&self, deadline: Option<Instant>) {
         self.ready.store(false, Ordering::Release);
         self.shutdown.send_replace(true);
         for s in self.scenes.values() {
-            s.close();
+            s.close(deadline);
         }
     }
 }
