@@ -302,8 +302,10 @@ impl LineRun {
 async fn events(
     State(svc): State<Arc<Service>>,
     Path(scene): Path<String>,
+    conn: Option<axum::Extension<super::conn::ConnHandle>>,
 ) -> Result<Response, Error> {
-    let results = svc.subscribe(&scene)?;
+    let stall = svc.stall_timeout();
+    let results = svc.subscribe(&scene, conn.map(|c| c.0), stall)?;
     let events = results.map(|r| {
         Ok::<_, Infallible>(match r {
             Ok(r) => Event::default()

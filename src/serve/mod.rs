@@ -116,7 +116,10 @@ impl Server {
             )?);
         }
         Ok(Server {
-            service: Arc::new(Service::new(started, metrics)),
+            service: Arc::new(
+                Service::new(started, metrics)
+                    .with_stall_timeout(config.connections.subscriber_stall_timeout),
+            ),
             config,
         })
     }
@@ -360,9 +363,12 @@ async fn build_router(svc: &Arc<Service>, config: &ServeConfig) -> Result<Router
         .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
         .build_v1()
         .map_err(|e| Error::Runtime(format!("gRPC reflection: {e}")))?;
-    let association = AssociationServer::new(grpc::GrpcService::new(svc.clone()))
-        .max_decoding_message_size(limit)
-        .max_encoding_message_size(usize::MAX);
+    let association = AssociationServer::new(grpc::GrpcService::new(
+        svc.clone(),
+        config.connections.subscriber_stall_timeout,
+    ))
+    .max_decoding_message_size(limit)
+    .max_encoding_message_size(usize::MAX);
     let mut router = Router::new();
     let body_timeout = config.connections.body_timeout;
     router = grpc_route(router, association, body_timeout);

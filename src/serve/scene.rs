@@ -15,7 +15,7 @@
 //! ([`Detection::clip_to_image`]) and counted (`crossview_clipped_boxes_total`); boxes
 //! entirely outside it are refused. The scene's appearance length is fixed by the first
 //! *accepted* batch carrying appearance vectors.
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
@@ -78,6 +78,8 @@ pub struct Scene {
     closed: AtomicBool,
     subscribers: Arc<AtomicUsize>,
     results: Mutex<Option<broadcast::Sender<Arc<FrameResult>>>>,
+    /// Results published so far (for spotting subscribers that stopped reading).
+    published: Arc<AtomicU64>,
     /// Wakes the timer task when a new frame starts waiting.
     pub(crate) wake: Notify,
     worker: Mutex<Option<std::thread::JoinHandle<()>>>,
@@ -117,6 +119,7 @@ impl Scene {
         let (results, _) = broadcast::channel(limits.subscriber_buffer.max(1));
         let queued = Arc::new(AtomicUsize::new(0));
         let close_by = Arc::new(Mutex::new(None));
+        let published = Arc::new(AtomicU64::new(0));
         let worker = Worker {
             info: info.clone(),
             encoder,
@@ -125,6 +128,7 @@ impl Scene {
             metrics: metrics.clone(),
             frame_deadline: limits.frame_deadline,
             close_by: close_by.clone(),
+            published: published.clone(),
         };
         let handle = std::thread::Builder::new()
             .name(format!("encoder-{}", info.spec.name))
@@ -146,6 +150,7 @@ impl Scene {
             closed: AtomicBool::new(false),
             subscribers: Arc::new(AtomicUsize::new(0)),
             results: Mutex::new(Some(results)),
+            published,
             wake: Notify::new(),
             worker: Mutex::new(Some(handle)),
         }))
@@ -469,6 +474,11 @@ impl Scene {
         }
     }
 
+    /// Results published so far.
+    pub fn published(&self) -> u64 {
+        self.published.load(Ordering::Acquire)
+    }
+
     /// A receiver of this scene's frame results from now on, or `Unavailable` after shutdown;
     /// the guard keeps the subscriber counted (`crossview_subscribers`) until dropped.
     pub fn subscribe(&self) -> Result<(broadcast::Receiver<Arc<FrameResult>>, SubscriberGuard)> {
@@ -537,6 +547,7 @@ struct Worker {
     metrics: Metrics,
     frame_deadline: Duration,
     close_by: Arc<Mutex<Option<Instant>>>,
+    published: Arc<AtomicU64>,
 }
 
 /// Why a queued frame is published without association.
@@ -597,6 +608,8 @@ impl Worker {
                     self.metrics
                         .frame_latency(&self.info.spec.name, e.first_seen.elapsed());
                     self.queued.fetch_sub(1, Ordering::AcqRel);
+                    // Count first, so a subscriber never sees more results than published.
+                    self.published.fetch_add(1, Ordering::AcqRel);
                     // No subscriber is not an error.
                     let _ = self.results.send(Arc::new(r));
                 }
