@@ -57,7 +57,7 @@ pub fn validate_scene_name(name: &str) -> Result<()> {
 ///
 /// Association cost model ([`super::cost`]): a frame with `n_c` boxes in camera `c` costs
 /// `Σ_{a<b} n_a · n_b · min(n_a, n_b)` units (one Hungarian assignment per camera pair);
-/// one unit is about 2 ns of one core (BENCHMARKS.md). `max_frame_cost` refuses the batch
+/// one unit is about 2–3.5 ns of one core. `max_frame_cost` refuses the batch
 /// (or unary request) that would push a frame over it, and `max_detections` is chosen so
 /// that two full cameras fit.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

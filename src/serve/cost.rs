@@ -9,8 +9,11 @@
 //! cost = Σ_{a<b} n_a · n_b · min(n_a, n_b)      (units)
 //! ```
 //!
-//! One unit is roughly 2 ns of one core (measured: 7 cameras × 512 boxes ≈ 2.8·10⁹ units ≈
-//! 4.6 s; see BENCHMARKS.md). The default budget, 2·10⁸ units (a few hundred ms), admits
+//! One unit is roughly 2–3.5 ns of one core: the issue-12 probe of the release server took
+//! 4.6 s for a 7 × 512 frame (2.8·10⁹ units, 1.6 ns/unit) and 40–49 s for 7 × 1024
+//! (2.3·10¹⁰ units); `tests/serve_frame_cost.rs` prints the figure of the build it runs in
+//! (3.4 ns/unit for 3 × 405 boxes in the test profile on a busy 2-core machine). The
+//! default budget, 2·10⁸ units (well under a second), admits
 //! 7 cameras × 200 boxes or 2 cameras × 580 boxes; a person seen by every one of 7 cameras
 //! adds about `21 · 3 · n²` units to an `n`-person frame.
 
