@@ -55,6 +55,17 @@ pub enum Error {
         camera: String,
         frame_id: u64,
     },
+    /// A batch's frame id is too far from the scene's current frame ids (the frame-id window,
+    /// `crossview serve --frame-window`); it was refused and changed nothing.
+    #[error(
+        "frame id {frame_id} of camera '{camera}' is out of range for scene '{scene}': {reason}"
+    )]
+    FrameOutOfRange {
+        scene: String,
+        camera: String,
+        frame_id: u64,
+        reason: String,
+    },
     /// A bounded queue or limit is full; the caller should back off and retry.
     #[error("resource exhausted: {0}")]
     ResourceExhausted(String),
@@ -106,6 +117,7 @@ impl Error {
             Error::Runtime(_) => "runtime",
             Error::LateBatch { .. } => "late",
             Error::DuplicateBatch { .. } => "duplicate",
+            Error::FrameOutOfRange { .. } => "out_of_range",
             Error::ResourceExhausted(_) => "resource_exhausted",
             Error::Unauthenticated(_) => "unauthenticated",
             Error::Unavailable(_) => "unavailable",

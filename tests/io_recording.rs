@@ -3,7 +3,10 @@ use std::io::Write;
 
 use crossview::Error;
 use crossview::core::{Batch, CameraSpec, Detection, Frame, SceneSpec};
-use crossview::io::{Recording, RecordingReader, RecordingWriter, read_recording, write_recording};
+use crossview::io::{
+    Recording, RecordingReader, RecordingWriter, read_recording, read_recording_with,
+    write_recording,
+};
 
 fn scene() -> SceneSpec {
     SceneSpec {
@@ -267,13 +270,13 @@ fn invalid_detection_names_the_field() {
 }
 
 #[test]
-fn negative_box_and_bad_score_are_rejected() {
+fn box_outside_the_image_and_bad_score_are_rejected() {
     let (_, msg) = format_error(&[
         HEADER,
-        r#"{"camera": "a", "frame_id": 0, "detections": [{"bbox": [-1, 2, 3, 4]}]}"#,
+        r#"{"camera": "a", "frame_id": 0, "detections": [{"bbox": [-9, 2, -3, 4]}]}"#,
     ]);
     assert!(
-        msg.contains("detections[0].bbox") && msg.contains("non-negative"),
+        msg.contains("detections[0].bbox") && msg.contains("entirely outside"),
         "{msg}"
     );
     let (_, msg) = format_error(&[
@@ -474,4 +477,53 @@ fn cli_split_reads_stdin_and_writes_stdout() {
         summary.contains("2 frames (18..=19)") && summary.contains("2 cameras"),
         "{summary}"
     );
+}
+
+#[test]
+fn boxes_overlapping_the_image_edge_are_clipped_and_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = [
+        HEADER,
+        // WILDTRACK-style y1 = -1, and one sticking out right and below (camera a is 640x480).
+        r#"{"camera": "a", "frame_id": 0, "detections": [{"bbox": [10, -1, 50, 90]}, {"bbox": [600, 400, 642, 481]}]}"#,
+    ]
+    .join("\n");
+    let path = write_file(&dir, "edge.jsonl", &text);
+    let (rec, stats) = read_recording_with(&path, true).unwrap();
+    let boxes: Vec<[f32; 4]> = rec.frames[0].views[0]
+        .as_ref()
+        .unwrap()
+        .iter()
+        .map(|d| d.bbox)
+        .collect();
+    assert_eq!(
+        boxes,
+        vec![[10.0, 0.0, 50.0, 90.0], [600.0, 400.0, 640.0, 480.0]]
+    );
+    assert_eq!(stats.clipped_boxes, 2);
+    assert_eq!(stats.skipped_boxes + stats.skipped_lines, 0);
+}
+
+#[test]
+fn a_lenient_reader_skips_broken_boxes_and_lines_with_a_count() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = [
+        HEADER,
+        r#"{"camera": "a", "frame_id": 0, "detections": [{"bbox": [10, 10, 50, 90]}, {"bbox": [50, 10, 40, 90]}]}"#,
+        r#"{"camera": "b", "frame_id": 0, "detections": [{"bbox": [5000, 10, 6000, 90]}, {"bbox": [1, 1, 9, 9]}]}"#,
+        r#"{"camera": "a", "frame_id": 1, "detections": [{"bbox": [1, 1, 9"#,
+        r#"{"camera": "zz", "frame_id": 1, "detections": []}"#,
+        r#"{"camera": "a", "frame_id": 0, "detections": []}"#,
+        r#"{"camera": "a", "frame_id": 2, "detections": [{"bbox": [1, 1, 9, 9]}]}"#,
+    ]
+    .join("\n");
+    let path = write_file(&dir, "careless.jsonl", &text);
+    // Strict: the first broken box aborts.
+    assert!(read_recording_with(&path, true).is_err());
+    let (rec, stats) = read_recording_with(&path, false).unwrap();
+    assert_eq!(stats.skipped_boxes, 2, "{stats:?}");
+    assert_eq!(stats.skipped_lines, 3, "{stats:?}");
+    assert!(stats.first_problem.unwrap().contains("detections[1].bbox"));
+    assert_eq!(rec.frame_ids(), vec![0, 2]);
+    assert_eq!(rec.num_boxes(), 3);
 }

@@ -53,6 +53,7 @@ fn expected(e: &Error) -> bool {
             | Error::UnknownCamera { .. }
             | Error::LateBatch { .. }
             | Error::DuplicateBatch { .. }
+            | Error::FrameOutOfRange { .. }
             | Error::ResourceExhausted(_)
     )
 }

@@ -5,7 +5,7 @@ use std::time::Duration;
 use anyhow::Context;
 use clap::Args;
 
-use crate::serve::{Limits, ModelSpec, ServeConfig, TlsConfig};
+use crate::serve::{ConnectionLimits, Limits, ModelSpec, ServeConfig, TlsConfig};
 
 /// Serve association over gRPC and HTTP JSON on one port.
 #[derive(Debug, Args)]
@@ -64,6 +64,45 @@ pub struct ServeArgs {
     /// Frame results buffered per subscriber before a slow subscriber is dropped.
     #[arg(long, env = "CROSSVIEW_SUBSCRIBER_BUFFER", default_value_t = Limits::default().subscriber_buffer)]
     pub subscriber_buffer: usize,
+    /// Most association cost units one frame may reach (cost = Σ over camera pairs of
+    /// n_a·n_b·min(n_a, n_b); about 2 ns each): the batch or unary request that would exceed
+    /// it is refused (422 / INVALID_ARGUMENT).
+    #[arg(long, env = "CROSSVIEW_MAX_FRAME_COST", default_value_t = Limits::default().max_frame_cost)]
+    pub max_frame_cost: u64,
+    /// A frame not yet associated this long after its first batch is published with an error
+    /// instead.
+    #[arg(long, env = "CROSSVIEW_FRAME_DEADLINE", default_value = "2s", value_parser = parse_duration)]
+    pub frame_deadline: Duration,
+    /// Frame-id window: batches more than this many ids from the scene's current frame ids
+    /// are refused as out of range (until a majority of cameras move there: a restart).
+    #[arg(long, env = "CROSSVIEW_FRAME_WINDOW", default_value_t = Limits::default().frame_window)]
+    pub frame_window: u64,
+    /// A JSON Lines body stops early once more than this many lines were rejected and
+    /// rejected lines outnumber accepted ones.
+    #[arg(long, env = "CROSSVIEW_MAX_REJECTED_LINES", default_value_t = Limits::default().max_rejected_lines)]
+    pub max_rejected_lines: usize,
+    /// Most open connections; at the cap the longest-idle one is closed for a new one, or the
+    /// new one is refused when none is idle. Keep it below `ulimit -n`.
+    #[arg(long, env = "CROSSVIEW_MAX_CONNECTIONS", default_value_t = ConnectionLimits::default().max_connections)]
+    pub max_connections: usize,
+    /// Time for a TLS handshake and for an HTTP/1 request head.
+    #[arg(long, env = "CROSSVIEW_HEADER_READ_TIMEOUT", default_value = "10s", value_parser = parse_duration)]
+    pub header_read_timeout: Duration,
+    /// A connection with no request in flight for this long is closed.
+    #[arg(long, env = "CROSSVIEW_IDLE_TIMEOUT", default_value = "60s", value_parser = parse_duration)]
+    pub idle_timeout: Duration,
+    /// Time for a whole HTTP request body, or for one gRPC message once it has started.
+    #[arg(long, env = "CROSSVIEW_BODY_TIMEOUT", default_value = "30s", value_parser = parse_duration)]
+    pub body_timeout: Duration,
+    /// Most concurrent HTTP/2 streams per connection.
+    #[arg(long, env = "CROSSVIEW_HTTP2_MAX_STREAMS", default_value_t = ConnectionLimits::default().http2_max_streams)]
+    pub http2_max_streams: u32,
+    /// HTTP/2 keep-alive ping interval (and the time a ping may go unanswered).
+    #[arg(long, env = "CROSSVIEW_HTTP2_KEEPALIVE", default_value = "30s", value_parser = parse_duration)]
+    pub http2_keepalive: Duration,
+    /// A result subscriber that has not taken a waiting result for this long is disconnected.
+    #[arg(long, env = "CROSSVIEW_SUBSCRIBER_STALL_TIMEOUT", default_value = "30s", value_parser = parse_duration)]
+    pub subscriber_stall_timeout: Duration,
     /// How long shutdown waits for open connections after flushing.
     #[arg(long, env = "CROSSVIEW_SHUTDOWN_GRACE", default_value = "10s", value_parser = parse_duration)]
     pub shutdown_grace: Duration,
@@ -130,6 +169,19 @@ impl ServeArgs {
                 max_appearance_len: self.max_appearance_len,
                 queue_capacity: self.queue_capacity,
                 subscriber_buffer: self.subscriber_buffer,
+                max_frame_cost: self.max_frame_cost,
+                frame_deadline: self.frame_deadline,
+                frame_window: self.frame_window,
+                max_rejected_lines: self.max_rejected_lines,
+            },
+            connections: ConnectionLimits {
+                max_connections: self.max_connections,
+                header_read_timeout: self.header_read_timeout,
+                idle_timeout: self.idle_timeout,
+                body_timeout: self.body_timeout,
+                http2_max_streams: self.http2_max_streams,
+                http2_keepalive: self.http2_keepalive,
+                subscriber_stall_timeout: self.subscriber_stall_timeout,
             },
             shutdown_grace: self.shutdown_grace,
         })

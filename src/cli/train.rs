@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::Args;
 
-use crate::io::recording::read_recording;
+use crate::io::recording::{read_recording, read_recording_with};
 use crate::model::ModelMetadata;
 use crate::model::export::write_onnx;
 use crate::train::calibrate::calibrate;
@@ -101,6 +101,10 @@ pub struct TrainArgs {
     /// Continue from the checkpoint in `--checkpoint-dir`.
     #[arg(long, requires = "checkpoint_dir")]
     pub resume: bool,
+    /// Abort on the first broken box or line of the training data instead of skipping it
+    /// with a count (boxes overlapping the image edge are clipped either way).
+    #[arg(long)]
+    pub strict: bool,
     /// Compute threads (default: all cores).
     #[arg(long, env = "CROSSVIEW_THREADS")]
     pub threads: Option<usize>,
@@ -143,8 +147,21 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     if !(0.0..1.0).contains(&args.min_box_height) || !(0.0..=1.0).contains(&args.drop_static_iou) {
         anyhow::bail!("--min-box-height must be within [0, 1) and --drop-static-iou within [0, 1]");
     }
-    let rec = read_recording(&args.data)
+    let (rec, read) = read_recording_with(&args.data, args.strict)
         .with_context(|| format!("reading training data {}", args.data.display()))?;
+    let read_summary = format!(
+        "{} boxes clipped at the image edge, {} broken boxes and {} broken lines skipped",
+        read.clipped_boxes, read.skipped_boxes, read.skipped_lines
+    );
+    if read.skipped_boxes + read.skipped_lines > 0 {
+        tracing::warn!(
+            clipped = read.clipped_boxes,
+            skipped_boxes = read.skipped_boxes,
+            skipped_lines = read.skipped_lines,
+            first = read.first_problem.as_deref().unwrap_or(""),
+            "training data had broken boxes or lines (skipped; --strict aborts instead)"
+        );
+    }
     let mut set = TrainingSet::from_recording(&rec.without_ids(), MIN_FRAMES)
         .with_context(|| format!("training data {}", args.data.display()))?;
     let filter = args.box_filter();
@@ -253,7 +270,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         .with_context(|| format!("writing {}", history.display()))?;
     match outcome.best {
         Some(s) => println!(
-            "wrote {} (epoch {}, {} steps, {:.0}s training): val ACC {:.2} IPAA-100 {:.2} P {:.2} R {:.2} threshold {:.1}; curve {}",
+            "wrote {} (epoch {}, {} steps, {:.0}s training): val ACC {:.2} IPAA-100 {:.2} P {:.2} R {:.2} threshold {:.1}; curve {}; data: {read_summary}",
             args.out.display(),
             outcome.best_epoch,
             outcome.steps,
@@ -266,7 +283,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             curve.display()
         ),
         None => println!(
-            "wrote {} ({} steps, {:.0}s training, threshold {:.1}); curve {}",
+            "wrote {} ({} steps, {:.0}s training, threshold {:.1}); curve {}; data: {read_summary}",
             args.out.display(),
             outcome.steps,
             outcome.train_seconds,

@@ -67,7 +67,8 @@ impl Detection {
     }
 
     /// The box normalised by its camera's image size (SPEC §2): `[x1/W, y1/H, x2/W, y2/H]`.
-    /// Values outside [0, 1] are kept (no clamping).
+    /// Values outside [0, 1] are kept (no clamping here; boxes are clipped to the image once,
+    /// when they enter, by [`clip_to_image`](Self::clip_to_image)).
     pub fn normalized(&self, cam: &CameraSpec) -> [f32; 4] {
         let (w, h) = (cam.width as f32, cam.height as f32);
         [
@@ -78,9 +79,10 @@ impl Detection {
         ]
     }
 
-    /// Rejects boxes and values that would poison the matcher: non-finite or negative
-    /// coordinates, inverted or empty boxes, scores outside [0, 1], non-finite appearance
-    /// values or an appearance length other than `appearance_len` (when given).
+    /// Rejects boxes and values that would poison the matcher: non-finite coordinates,
+    /// inverted or empty boxes, scores outside [0, 1], non-finite appearance values or an
+    /// appearance length other than `appearance_len` (when given). Where the box lies relative
+    /// to its image is [`clip_to_image`](Self::clip_to_image)'s rule.
     /// `field` prefixes error messages, e.g. `detections[3]`.
     pub fn validate(&self, field: &str, appearance_len: Option<usize>) -> Result<()> {
         let [x1, y1, x2, y2] = self.bbox;
@@ -88,12 +90,6 @@ impl Detection {
             return Err(Error::invalid(
                 format!("{field}.bbox"),
                 format!("coordinates must be finite, got {:?}", self.bbox),
-            ));
-        }
-        if self.bbox.iter().any(|&v| v < 0.0) {
-            return Err(Error::invalid(
-                format!("{field}.bbox"),
-                format!("coordinates must be non-negative, got {:?}", self.bbox),
             ));
         }
         if x2 <= x1 || y2 <= y1 {
@@ -128,6 +124,31 @@ impl Detection {
             }
         }
         Ok(())
+    }
+}
+
+impl Detection {
+    /// The one rule for boxes and the image edge (serving, training and import alike): a
+    /// valid box (see [`validate`](Self::validate)) that overlaps the edge of `cam`'s
+    /// `width × height` image is clipped to the image — real detectors emit boxes a pixel or
+    /// two outside it (WILDTRACK's own have `y1 = -1`) — and a box entirely outside the image
+    /// (no overlap of positive area) is rejected. Returns whether the box was clipped.
+    pub fn clip_to_image(&mut self, field: &str, cam: &CameraSpec) -> Result<bool> {
+        let (w, h) = (cam.width as f32, cam.height as f32);
+        let [x1, y1, x2, y2] = self.bbox;
+        if x2 <= 0.0 || y2 <= 0.0 || x1 >= w || y1 >= h {
+            return Err(Error::invalid(
+                format!("{field}.bbox"),
+                format!(
+                    "box {:?} lies entirely outside the {}x{} image of camera '{}'",
+                    self.bbox, cam.width, cam.height, cam.name
+                ),
+            ));
+        }
+        let clipped = [x1.max(0.0), y1.max(0.0), x2.min(w), y2.min(h)];
+        let changed = clipped != self.bbox;
+        self.bbox = clipped;
+        Ok(changed)
     }
 }
 

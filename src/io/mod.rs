@@ -4,5 +4,8 @@ pub mod recording;
 pub mod split;
 pub mod wildtrack;
 
-pub use recording::{Recording, RecordingReader, RecordingWriter, read_recording, write_recording};
+pub use recording::{
+    ReadStats, Recording, RecordingReader, RecordingWriter, read_recording, read_recording_with,
+    write_recording,
+};
 pub use split::{Part, split_bounds, split_frames, split_ranges};

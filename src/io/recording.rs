@@ -8,6 +8,12 @@
 //! Every problem in a file is an [`Error::Format`] naming the source, the 1-based line and the
 //! problem (malformed JSON, missing header, unknown camera, duplicate batch, invalid detection,
 //! inconsistent appearance length).
+//!
+//! Boxes that overlap their image's edge are clipped to the image
+//! ([`Detection::clip_to_image`], the one rule shared with the server) and counted in
+//! [`ReadStats::clipped_boxes`]. A [`lenient`](RecordingReader::lenient) reader (the trainer's
+//! default) skips a broken box or a broken line with a count instead of failing: real
+//! detector output is careless, and one bad box must not abort a 71,000-box recording.
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::fs::File;
 use std::io::{BufRead, BufReader, BufWriter, Read, Write};
@@ -16,7 +22,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use crate::core::{Batch, Detection, Frame, SceneSpec};
+use crate::core::{Batch, CameraSpec, Detection, Frame, SceneSpec};
 use crate::{Error, Result};
 
 /// A whole recording in memory: the scene and its frames sorted by frame id.
@@ -81,16 +87,38 @@ fn validate_scene(scene: &SceneSpec) -> std::result::Result<(), String> {
 struct AppearanceLen(Option<usize>);
 
 impl AppearanceLen {
-    /// Validates every detection of `dets` (field names `detections[i]...`) and checks that all
-    /// appearance vectors share one length.
-    fn check(&mut self, dets: &[Detection]) -> Result<()> {
-        for (i, det) in dets.iter().enumerate() {
-            det.validate(&format!("detections[{i}]"), self.0)?;
-            if self.0.is_none() {
-                self.0 = det.appearance.as_ref().map(Vec::len);
-            }
+    /// Validates one detection (field `detections[i]...`), checks that all appearance vectors
+    /// share one length and clips the box to `cam`'s image; returns whether it was clipped.
+    fn check(&mut self, i: usize, det: &mut Detection, cam: &CameraSpec) -> Result<bool> {
+        let field = format!("detections[{i}]");
+        det.validate(&field, self.0)?;
+        let clipped = det.clip_to_image(&field, cam)?;
+        if self.0.is_none() {
+            self.0 = det.appearance.as_ref().map(Vec::len);
         }
-        Ok(())
+        Ok(clipped)
+    }
+}
+
+/// What a reader clipped and skipped so far.
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
+pub struct ReadStats {
+    /// Boxes clipped to their image (they overlapped its edge).
+    pub clipped_boxes: usize,
+    /// Broken boxes skipped (lenient readers only): NaN, inverted, entirely outside the
+    /// image, bad score or appearance.
+    pub skipped_boxes: usize,
+    /// Broken lines skipped (lenient readers only): malformed JSON, unknown camera,
+    /// duplicate batch.
+    pub skipped_lines: usize,
+    /// The first problem skipped, for the summary.
+    pub first_problem: Option<String>,
+}
+
+impl ReadStats {
+    fn skipped(&mut self, problem: &Error) {
+        self.first_problem
+            .get_or_insert_with(|| problem.to_string());
     }
 }
 
@@ -99,7 +127,9 @@ impl AppearanceLen {
 ///
 /// Validation per batch: known camera, no second batch for the same camera and frame, every
 /// detection valid ([`Detection::validate`]) and all appearance vectors of the same length.
-/// After the first error the iterator is fused (yields `None`).
+/// After the first error the iterator is fused (yields `None`). A
+/// [`lenient`](Self::lenient) reader skips broken boxes and lines instead (counted in
+/// [`stats`](Self::stats)); only I/O errors end it.
 pub struct RecordingReader<R> {
     source_name: String,
     reader: R,
@@ -111,6 +141,8 @@ pub struct RecordingReader<R> {
     /// `None` when the check is switched off.
     seen: Option<HashMap<u64, Box<[u64]>>>,
     done: bool,
+    lenient: bool,
+    stats: ReadStats,
 }
 
 impl RecordingReader<BufReader<Box<dyn Read>>> {
@@ -142,6 +174,8 @@ impl<R: BufRead> RecordingReader<R> {
             appearance: AppearanceLen::default(),
             seen: Some(HashMap::new()),
             done: false,
+            lenient: false,
+            stats: ReadStats::default(),
         };
         let Some(line) = this.next_line()? else {
             return Err(this.format_err(
@@ -173,6 +207,17 @@ impl<R: BufRead> RecordingReader<R> {
     pub fn without_duplicate_check(mut self) -> Self {
         self.seen = None;
         self
+    }
+
+    /// Skips broken boxes and lines (with a count) instead of failing on the first.
+    pub fn lenient(mut self) -> Self {
+        self.lenient = true;
+        self
+    }
+
+    /// Boxes clipped and boxes and lines skipped so far.
+    pub fn stats(&self) -> &ReadStats {
+        &self.stats
     }
 
     /// The 1-based number of the last line read.
@@ -209,7 +254,7 @@ impl<R: BufRead> RecordingReader<R> {
 
     /// Parses and validates one batch line.
     fn parse_batch(&mut self, line: &str) -> Result<Batch> {
-        let batch: Batch = serde_json::from_str(line).map_err(|e| {
+        let mut batch: Batch = serde_json::from_str(line).map_err(|e| {
             let message = if line.contains("\"scene\"") {
                 format!("unexpected second scene header or malformed batch: {e}")
             } else {
@@ -247,12 +292,31 @@ impl<R: BufRead> RecordingReader<R> {
                 ),
             ));
         }
-        self.appearance.check(&batch.detections).map_err(|e| {
-            self.format_err(
-                self.line_no,
-                format!("camera '{}' frame {}: {e}", batch.camera, batch.frame_id),
-            )
-        })?;
+        let camera = &self.scene.cameras[cam];
+        let mut kept = Vec::with_capacity(batch.detections.len());
+        for (i, mut det) in std::mem::take(&mut batch.detections)
+            .into_iter()
+            .enumerate()
+        {
+            match self.appearance.check(i, &mut det, camera) {
+                Ok(clipped) => {
+                    self.stats.clipped_boxes += usize::from(clipped);
+                    kept.push(det);
+                }
+                Err(e) => {
+                    let e = self.format_err(
+                        self.line_no,
+                        format!("camera '{}' frame {}: {e}", batch.camera, batch.frame_id),
+                    );
+                    if !self.lenient {
+                        return Err(e);
+                    }
+                    self.stats.skipped_boxes += 1;
+                    self.stats.skipped(&e);
+                }
+            }
+        }
+        batch.detections = kept;
         Ok(batch)
     }
 }
@@ -273,36 +337,58 @@ impl<R: BufRead> Iterator for RecordingReader<R> {
         if self.done {
             return None;
         }
-        let result = match self.next_line() {
-            Ok(None) => {
+        loop {
+            let result = match self.next_line() {
+                Ok(None) => {
+                    self.done = true;
+                    return None;
+                }
+                Ok(Some(line)) => match self.parse_batch(&line) {
+                    Err(e @ Error::Format { .. }) if self.lenient => {
+                        self.stats.skipped_lines += 1;
+                        self.stats.skipped(&e);
+                        continue;
+                    }
+                    r => r,
+                },
+                Err(e) => Err(e),
+            };
+            if result.is_err() {
                 self.done = true;
-                return None;
             }
-            Ok(Some(line)) => self.parse_batch(&line),
-            Err(e) => Err(e),
-        };
-        if result.is_err() {
-            self.done = true;
+            return Some(result);
         }
-        Some(result)
     }
 }
 
-/// Reads a whole recording from `path` (`-` = stdin) into memory, frames sorted by id.
+/// Reads a whole recording from `path` (`-` = stdin) into memory, frames sorted by id; fails
+/// on the first broken box or line.
 pub fn read_recording(path: impl AsRef<Path>) -> Result<Recording> {
-    let reader = RecordingReader::open(path)?;
+    read_recording_with(path, true).map(|(rec, _)| rec)
+}
+
+/// [`read_recording`], `strict` or lenient (skipping broken boxes and lines, see
+/// [`RecordingReader::lenient`]), with what was clipped and skipped.
+pub fn read_recording_with(path: impl AsRef<Path>, strict: bool) -> Result<(Recording, ReadStats)> {
+    let mut reader = RecordingReader::open(path)?;
+    if !strict {
+        reader = reader.lenient();
+    }
     let scene = reader.scene().clone();
     // The reader already validated cameras, duplicates and detections.
     let mut assembler = FrameAssembler::new(&scene);
-    for batch in reader {
+    for batch in reader.by_ref() {
         let batch = batch?;
         let cam = scene.camera_index(&batch.camera)?;
         assembler.insert(cam, batch.frame_id, batch.detections);
     }
-    Ok(Recording {
-        frames: assembler.finish(),
-        scene,
-    })
+    Ok((
+        Recording {
+            frames: assembler.finish(),
+            scene,
+        },
+        reader.stats().clone(),
+    ))
 }
 
 /// Collects batches into frames keyed (and so sorted) by frame id.
@@ -343,7 +429,8 @@ impl Recording {
     /// `None` where camera `c` sent nothing. Fails on an invalid scene, an unknown camera
     /// ([`Error::UnknownCamera`]), a second batch for the same camera and frame
     /// ([`Error::DuplicateBatch`]) or an invalid detection / inconsistent appearance length
-    /// ([`Error::InvalidArgument`], field `<camera>@<frame>.detections[i]...`).
+    /// ([`Error::InvalidArgument`], field `<camera>@<frame>.detections[i]...`). Boxes
+    /// overlapping the image edge are clipped ([`Detection::clip_to_image`]).
     pub fn from_batches(
         scene: SceneSpec,
         batches: impl IntoIterator<Item = Batch>,
@@ -351,15 +438,19 @@ impl Recording {
         validate_scene(&scene).map_err(|m| Error::invalid("scene", m))?;
         let mut appearance = AppearanceLen::default();
         let mut assembler = FrameAssembler::new(&scene);
-        for batch in batches {
+        for mut batch in batches {
             let cam = scene.camera_index(&batch.camera)?;
-            appearance.check(&batch.detections).map_err(|e| match e {
-                Error::InvalidArgument { field, reason } => Error::InvalidArgument {
-                    field: format!("{}@{}.{field}", batch.camera, batch.frame_id),
-                    reason,
-                },
-                other => other,
-            })?;
+            for (i, det) in batch.detections.iter_mut().enumerate() {
+                appearance
+                    .check(i, det, &scene.cameras[cam])
+                    .map_err(|e| match e {
+                        Error::InvalidArgument { field, reason } => Error::InvalidArgument {
+                            field: format!("{}@{}.{field}", batch.camera, batch.frame_id),
+                            reason,
+                        },
+                        other => other,
+                    })?;
+            }
             if !assembler.insert(cam, batch.frame_id, batch.detections) {
                 return Err(Error::DuplicateBatch {
                     scene: scene.name.clone(),

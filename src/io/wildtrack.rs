@@ -64,17 +64,22 @@ pub fn part_bounds(part: Part) -> (u64, u64) {
 pub struct Imported {
     /// The recording (scene `wildtrack`, every frame complete).
     pub recording: Recording,
-    /// Boxes whose negative x1/y1 were clipped to 0.
+    /// Boxes clipped to the image (negative x1/y1, or past the right or bottom edge).
     pub clipped: usize,
     /// Boxes dropped because they were empty or inverted (after clipping).
     pub dropped: usize,
 }
 
-/// Clips negative x1/y1 to 0; returns the box and whether it was clipped, or `None` when it is
-/// still empty/inverted afterwards.
+/// Clips the box to the 1920x1080 image (the one edge rule, [`Detection::clip_to_image`]:
+/// WILDTRACK has negative xmin/ymin and boxes past the right and bottom edges); returns the box
+/// and whether it was clipped, or `None` when it is empty/inverted (or entirely outside)
+/// afterwards.
+///
+/// [`Detection::clip_to_image`]: crate::core::Detection::clip_to_image
 fn clip_box(x1: f64, y1: f64, x2: f64, y2: f64) -> (Option<[f32; 4]>, bool) {
-    let clipped = x1 < 0.0 || y1 < 0.0;
-    let (x1, y1) = (x1.max(0.0), y1.max(0.0));
+    let (w, h) = (f64::from(WIDTH), f64::from(HEIGHT));
+    let clipped = x1 < 0.0 || y1 < 0.0 || x2 > w || y2 > h;
+    let (x1, y1, x2, y2) = (x1.max(0.0), y1.max(0.0), x2.min(w), y2.min(h));
     if x2 <= x1 || y2 <= y1 {
         return (None, clipped);
     }
@@ -149,7 +154,7 @@ fn annotation_files(dir: &Path) -> Result<Vec<(u64, PathBuf)>> {
 
 /// Imports ground truth from a WILDTRACK `annotations_positions/` folder, frames with
 /// `from <= frame_id <= to` (either bound optional). Boxes carry the `personID` as `id`.
-/// Views with -1 coordinates (not visible) are skipped; negative xmin/ymin are clipped to 0;
+/// Views with -1 coordinates (not visible) are skipped; boxes are clipped to the image;
 /// boxes still empty after clipping are dropped and counted (a `tracing` warning).
 /// Fails when no annotated frame falls in the range.
 pub fn import_ground_truth(dir: &Path, from: Option<u64>, to: Option<u64>) -> Result<Imported> {
@@ -227,7 +232,7 @@ pub fn import_ground_truth(dir: &Path, from: Option<u64>, to: Option<u64>) -> Re
     if dropped > 0 {
         tracing::warn!(dropped, dir = %dir.display(), "dropped ground-truth boxes that were empty after clipping");
     }
-    tracing::debug!(clipped, "clipped negative xmin/ymin to 0");
+    tracing::debug!(clipped, "clipped boxes to the image");
     finish(frames, clipped, dropped)
 }
 
@@ -255,8 +260,8 @@ fn finish(frames: Vec<Frame>, clipped: usize, dropped: usize) -> Result<Imported
 }
 
 /// Imports Self-MVA detections `{"<index>": [[x, y, w, h, id, viewNum], ...]}`: frame id =
-/// `stride * index`, bbox `[x, y, x + w, y + h]`, id kept unless -1. Negative x/y are clipped
-/// to 0 and boxes empty afterwards are dropped and counted. Every camera gets a batch for
+/// `stride * index`, bbox `[x, y, x + w, y + h]`, id kept unless -1. Boxes are clipped to the image
+/// and boxes empty afterwards are dropped and counted. Every camera gets a batch for
 /// every frame of the file.
 pub fn import_detections(file: &Path, stride: u64) -> Result<Imported> {
     if stride == 0 {
@@ -345,6 +350,6 @@ pub fn import_detections(file: &Path, stride: u64) -> Result<Imported> {
     if dropped > 0 {
         tracing::warn!(dropped, file = %file.display(), "dropped detections that were empty after clipping");
     }
-    tracing::debug!(clipped, "clipped negative x/y to 0");
+    tracing::debug!(clipped, "clipped boxes to the image");
     finish(frames.into_values().collect(), clipped, dropped)
 }

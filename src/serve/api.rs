@@ -5,8 +5,10 @@ use serde::{Deserialize, Serialize};
 use crate::core::{CameraSpec, Detection};
 
 /// One camera's detections in a unary association request.
+///
+/// Unknown JSON fields are ignored, here as in batches (and as protobuf ignores unknown
+/// fields): one rule for every request body.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
 pub struct CameraView {
     pub camera: String,
     #[serde(default)]
@@ -14,9 +16,8 @@ pub struct CameraView {
 }
 
 /// A whole, already synchronized frame (`POST /v1/scenes/{scene}/associate`). Cameras of the
-/// scene absent from `views` count as missing.
+/// scene absent from `views` count as missing. Unknown fields are ignored (see [`CameraView`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
 pub struct AssociateRequest {
     #[serde(default)]
     pub frame_id: u64,
@@ -76,7 +77,8 @@ pub struct SceneDescription {
     pub threshold: f32,
     pub alpha: f32,
     pub model_version: String,
-    /// Appearance vector length fixed by the first vector seen; `None` while unknown.
+    /// Appearance vector length fixed by the first accepted batch with vectors; `None` while
+    /// unknown.
     pub appearance_length: Option<usize>,
     pub sync_timeout_ms: u64,
 }

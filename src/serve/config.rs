@@ -53,7 +53,13 @@ pub fn validate_scene_name(name: &str) -> Result<()> {
     }
 }
 
-/// Size caps that keep one request from costing unbounded memory or time.
+/// Size and cost caps that keep one request from costing unbounded memory or time.
+///
+/// Association cost model ([`super::cost`]): a frame with `n_c` boxes in camera `c` costs
+/// `Σ_{a<b} n_a · n_b · min(n_a, n_b)` units (one Hungarian assignment per camera pair);
+/// one unit is about 2–3.5 ns of one core. `max_frame_cost` refuses the batch
+/// (or unary request) that would push a frame over it, and `max_detections` is chosen so
+/// that two full cameras fit.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Limits {
     /// Largest HTTP body or gRPC message in bytes.
@@ -68,6 +74,18 @@ pub struct Limits {
     pub queue_capacity: usize,
     /// Frame results buffered per subscriber before it is dropped as too slow.
     pub subscriber_buffer: usize,
+    /// Most association cost units one frame may reach (see the cost model above).
+    pub max_frame_cost: u64,
+    /// A frame whose association has not started this long after its first batch is
+    /// published with an error instead (keeps a backlog of expensive frames from delaying
+    /// every later one without bound).
+    pub frame_deadline: Duration,
+    /// Frame-id window (see [`super::sync`]): batches further than this from the scene's
+    /// current frame ids are refused as out of range.
+    pub frame_window: u64,
+    /// A JSON Lines body stops early once more than this many lines were rejected and
+    /// rejected lines outnumber accepted ones.
+    pub max_rejected_lines: usize,
 }
 
 impl Default for Limits {
@@ -75,10 +93,51 @@ impl Default for Limits {
         Limits {
             max_request_bytes: 4 << 20,
             max_cameras: 64,
-            max_detections: 1024,
+            max_detections: 512,
             max_appearance_len: 4096,
             queue_capacity: 256,
             subscriber_buffer: 1024,
+            max_frame_cost: 200_000_000,
+            frame_deadline: Duration::from_secs(2),
+            frame_window: super::sync::DEFAULT_FRAME_WINDOW,
+            max_rejected_lines: 100,
+        }
+    }
+}
+
+/// Connection limits and timeouts of the shared gRPC + HTTP port (HTTP/1 and HTTP/2 alike).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ConnectionLimits {
+    /// Most open connections. At the cap a new connection closes the longest-idle one (no
+    /// request in flight); when none is idle the new connection is refused (closed at once).
+    pub max_connections: usize,
+    /// A TLS handshake and a request head (HTTP/1) must complete within this time.
+    pub header_read_timeout: Duration,
+    /// A connection with no request in flight for this long is closed (covers slow or
+    /// absent request heads on HTTP/2 too).
+    pub idle_timeout: Duration,
+    /// An HTTP request body, or one gRPC message once started, must arrive within this time.
+    pub body_timeout: Duration,
+    /// Most concurrent HTTP/2 streams (requests) per connection.
+    pub http2_max_streams: u32,
+    /// HTTP/2 keep-alive ping interval; a peer that does not answer within the same time is
+    /// disconnected.
+    pub http2_keepalive: Duration,
+    /// A result subscriber (gRPC `Subscribe`/`Stream`, SSE) that has not taken a published
+    /// result for this long while results wait for it is disconnected.
+    pub subscriber_stall_timeout: Duration,
+}
+
+impl Default for ConnectionLimits {
+    fn default() -> Self {
+        ConnectionLimits {
+            max_connections: 512,
+            header_read_timeout: Duration::from_secs(10),
+            idle_timeout: Duration::from_secs(60),
+            body_timeout: Duration::from_secs(30),
+            http2_max_streams: 100,
+            http2_keepalive: Duration::from_secs(30),
+            subscriber_stall_timeout: Duration::from_secs(30),
         }
     }
 }
@@ -103,8 +162,10 @@ pub struct ServeConfig {
     pub api_keys: Vec<String>,
     /// Serve TLS (rustls) when set.
     pub tls: Option<TlsConfig>,
-    /// Size and queue caps.
+    /// Size, cost and queue caps.
     pub limits: Limits,
+    /// Connection cap and timeouts.
+    pub connections: ConnectionLimits,
     /// How long graceful shutdown waits for open connections after flushing.
     pub shutdown_grace: Duration,
 }
@@ -121,6 +182,7 @@ impl std::fmt::Debug for ServeConfig {
             )
             .field("tls", &self.tls)
             .field("limits", &self.limits)
+            .field("connections", &self.connections)
             .field("shutdown_grace", &self.shutdown_grace)
             .finish()
     }
@@ -135,6 +197,7 @@ impl Default for ServeConfig {
             api_keys: Vec::new(),
             tls: None,
             limits: Limits::default(),
+            connections: ConnectionLimits::default(),
             shutdown_grace: Duration::from_secs(10),
         }
     }

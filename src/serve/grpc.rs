@@ -4,7 +4,7 @@ use std::pin::Pin;
 use std::sync::Arc;
 
 use futures::{Stream, StreamExt};
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Code, Request, Response, Status, Streaming};
 
@@ -21,6 +21,7 @@ impl From<Error> for Status {
             Error::UnknownScene(_) | Error::UnknownCamera { .. } => Code::NotFound,
             Error::LateBatch { .. } => Code::FailedPrecondition,
             Error::DuplicateBatch { .. } => Code::AlreadyExists,
+            Error::FrameOutOfRange { .. } => Code::OutOfRange,
             Error::ResourceExhausted(_) => Code::ResourceExhausted,
             Error::Unauthenticated(_) => Code::Unauthenticated,
             Error::Unavailable(_) => Code::Unavailable,
@@ -28,7 +29,7 @@ impl From<Error> for Status {
                 Code::Internal
             }
         };
-        Status::new(code, e.to_string())
+        Status::new(code, super::truncate_echo(&e.to_string()))
     }
 }
 
@@ -138,7 +139,7 @@ fn scene_to_pb(s: api::SceneDescription) -> pb::Scene {
 
 /// Pushes one protobuf batch and turns the outcome into its acknowledgement.
 fn push_one(svc: &Service, b: pb::Batch) -> pb::BatchAck {
-    let (scene, camera, frame_id) = (b.scene.clone(), b.camera.clone(), b.frame_id);
+    let (scene, camera, frame_id) = (echo(&b.scene), echo(&b.camera), b.frame_id);
     let outcome = batch_from_pb(b)
         .inspect_err(|e| svc.metrics().error(e.kind()))
         .and_then(|(scene, batch)| svc.push(&scene, batch));
@@ -162,16 +163,76 @@ fn push_one(svc: &Service, b: pb::Batch) -> pb::BatchAck {
 
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
 
+/// Forwards a `Stream` call's scene results to its response until the call is over: the client
+/// cancelled (the subscriber is dropped at once, not at the next frame), the scene's results
+/// ended (shutdown), or the client half-closed and the result of the newest frame it had
+/// accepted went out (at most `linger` after the half-close: sync timeout + frame deadline).
+async fn forward_results(
+    mut results: super::service::ResultStream,
+    tx: mpsc::Sender<Result<pb::StreamResponse, Status>>,
+    mut half_closed: watch::Receiver<Option<Option<u64>>>,
+    linger: std::time::Duration,
+) {
+    use pb::stream_response::Event;
+    let mut newest_sent: Option<u64> = None;
+    let mut deadline: Option<tokio::time::Instant> = None;
+    let mut watching = true;
+    loop {
+        // Ends once the newest accepted frame's result is out (or nothing was accepted).
+        if let Some(last) = *half_closed.borrow() {
+            if last.is_none_or(|l| newest_sent.is_some_and(|s| s >= l)) {
+                return;
+            }
+            deadline.get_or_insert_with(|| tokio::time::Instant::now() + linger);
+        }
+        let linger_over = async {
+            match deadline {
+                Some(t) => tokio::time::sleep_until(t).await,
+                None => std::future::pending().await,
+            }
+        };
+        tokio::select! {
+            r = results.next() => {
+                let Some(r) = r else { return };
+                let item = r
+                    .map(|r| {
+                        newest_sent = Some(newest_sent.map_or(r.frame_id, |s| s.max(r.frame_id)));
+                        pb::StreamResponse {
+                            event: Some(Event::Result(result_to_pb(&r))),
+                        }
+                    })
+                    .map_err(Status::from);
+                if tx.send(item).await.is_err() {
+                    return;
+                }
+            }
+            changed = half_closed.changed(), if watching => {
+                if changed.is_err() {
+                    // The reader task is gone; what it said last (if anything) stands.
+                    watching = false;
+                    if half_closed.borrow().is_none() {
+                        return;
+                    }
+                }
+            }
+            _ = tx.closed() => return,
+            _ = linger_over => return,
+        }
+    }
+}
+
 /// The tonic service: a thin shell over [`Service`].
 #[derive(Debug, Clone)]
 pub struct GrpcService {
     svc: Arc<Service>,
+    stall_timeout: std::time::Duration,
 }
 
 impl GrpcService {
-    /// Wraps the shared domain service.
-    pub fn new(svc: Arc<Service>) -> Self {
-        GrpcService { svc }
+    /// Wraps the shared domain service; result subscribers that stop reading for
+    /// `stall_timeout` are disconnected.
+    pub fn new(svc: Arc<Service>, stall_timeout: std::time::Duration) -> Self {
+        GrpcService { svc, stall_timeout }
     }
 }
 
@@ -208,7 +269,14 @@ impl pb::association_server::Association for GrpcService {
         &self,
         request: Request<pb::SubscribeRequest>,
     ) -> Result<Response<Self::SubscribeStream>, Status> {
-        let results = self.svc.subscribe(&request.into_inner().scene)?;
+        let conn = request
+            .extensions()
+            .get::<super::conn::ConnHandle>()
+            .cloned();
+        let stall = Some(self.stall_timeout);
+        let results = self
+            .svc
+            .subscribe(&request.into_inner().scene, conn, stall)?;
         let out = results.map(|r| r.map(|r| result_to_pb(&r)).map_err(Status::from));
         Ok(Response::new(Box::pin(out)))
     }
@@ -221,16 +289,27 @@ impl pb::association_server::Association for GrpcService {
     ) -> Result<Response<Self::StreamStream>, Status> {
         use pb::stream_response::Event;
         let svc = self.svc.clone();
+        let conn = request
+            .extensions()
+            .get::<super::conn::ConnHandle>()
+            .cloned();
+        let stall = Some(self.stall_timeout);
         let mut input = request.into_inner();
         let (tx, rx) = mpsc::channel::<Result<pb::StreamResponse, Status>>(64);
         tokio::spawn(async move {
             let mut scene: Option<String> = None;
+            // The newest frame id this call had accepted; sent to the result forwarder when the
+            // client half-closes, so the call ends once that frame's result is out.
+            let mut last_accepted: Option<u64> = None;
+            let (half_closed, half_closed_rx) = watch::channel::<Option<Option<u64>>>(None);
             let stop = svc.shutting_down();
             tokio::pin!(stop);
             loop {
                 let msg = tokio::select! {
                     m = input.next() => m,
                     _ = &mut stop => None,
+                    // The client went away: stop reading (the forwarder notices too).
+                    _ = tx.closed() => break,
                 };
                 let b = match msg {
                     None => break,
@@ -241,22 +320,23 @@ impl pb::association_server::Association for GrpcService {
                     Some(Ok(b)) => b,
                 };
                 let ack = match &scene {
-                    None => match svc.subscribe(&b.scene) {
-                        Ok(mut results) => {
+                    None => match svc.subscribe(&b.scene, conn.clone(), stall) {
+                        Ok(results) => {
                             scene = Some(b.scene.clone());
-                            let tx = tx.clone();
-                            tokio::spawn(async move {
-                                while let Some(r) = results.next().await {
-                                    let item = r
-                                        .map(|r| pb::StreamResponse {
-                                            event: Some(Event::Result(result_to_pb(&r))),
-                                        })
-                                        .map_err(Status::from);
-                                    if tx.send(item).await.is_err() {
-                                        break;
-                                    }
-                                }
-                            });
+                            let linger = svc
+                                .scene(&b.scene)
+                                .map(|s| {
+                                    let d = s.describe();
+                                    std::time::Duration::from_millis(d.sync_timeout_ms)
+                                        + s.limits().frame_deadline
+                                })
+                                .unwrap_or_default();
+                            tokio::spawn(forward_results(
+                                results,
+                                tx.clone(),
+                                half_closed_rx.clone(),
+                                linger,
+                            ));
                             push_one(&svc, b)
                         }
                         Err(e) => reject(&b, e),
@@ -265,11 +345,18 @@ impl pb::association_server::Association for GrpcService {
                         &b,
                         Error::invalid(
                             "scene",
-                            format!("this stream serves scene '{s}', got '{}'", b.scene),
+                            format!(
+                                "this stream serves scene '{s}', got '{}'",
+                                super::truncate_echo(&b.scene)
+                            ),
                         ),
                     ),
                     Some(_) => push_one(&svc, b),
                 };
+                if ack.code == 0 {
+                    last_accepted =
+                        Some(last_accepted.map_or(ack.frame_id, |l| l.max(ack.frame_id)));
+                }
                 let item = pb::StreamResponse {
                     event: Some(Event::Ack(ack)),
                 };
@@ -277,6 +364,7 @@ impl pb::association_server::Association for GrpcService {
                     break;
                 }
             }
+            let _ = half_closed.send(Some(last_accepted));
         });
         Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
     }
@@ -299,12 +387,17 @@ impl pb::association_server::Association for GrpcService {
     }
 }
 
+/// A client-supplied name as echoed in an ack (bounded, see [`super::truncate_echo`]).
+fn echo(s: &str) -> String {
+    super::truncate_echo(s).into_owned()
+}
+
 fn reject(b: &pb::Batch, e: Error) -> pb::BatchAck {
     let kind = e.kind().to_string();
     let status = Status::from(e);
     pb::BatchAck {
-        scene: b.scene.clone(),
-        camera: b.camera.clone(),
+        scene: echo(&b.scene),
+        camera: echo(&b.camera),
         frame_id: b.frame_id,
         code: status.code() as i32,
         message: status.message().to_string(),

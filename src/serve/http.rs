@@ -13,7 +13,7 @@ use axum::{Json, Router};
 use futures::StreamExt;
 use serde::de::DeserializeOwned;
 
-use super::api::AssociateRequest;
+use super::api::{AssociateRequest, BatchAck};
 use super::service::Service;
 use crate::Error;
 use crate::core::Batch;
@@ -21,7 +21,9 @@ use crate::core::Batch;
 /// The HTTP status of each error.
 pub fn status_of(e: &Error) -> StatusCode {
     match e {
-        Error::InvalidArgument { .. } | Error::Format { .. } => StatusCode::UNPROCESSABLE_ENTITY,
+        Error::InvalidArgument { .. } | Error::Format { .. } | Error::FrameOutOfRange { .. } => {
+            StatusCode::UNPROCESSABLE_ENTITY
+        }
         Error::UnknownScene(_) | Error::UnknownCamera { .. } => StatusCode::NOT_FOUND,
         Error::LateBatch { .. } | Error::DuplicateBatch { .. } => StatusCode::CONFLICT,
         Error::ResourceExhausted(_) => StatusCode::TOO_MANY_REQUESTS,
@@ -40,8 +42,9 @@ impl IntoResponse for Error {
             Error::InvalidArgument { field, .. } => Some(field.clone()),
             _ => None,
         };
+        let message = super::truncate_echo(&self.to_string()).into_owned();
         let body = serde_json::json!({
-            "error": { "kind": self.kind(), "message": self.to_string(), "field": field }
+            "error": { "kind": self.kind(), "message": message, "field": field }
         });
         let mut resp = (status, Json(body)).into_response();
         if status == StatusCode::UNAUTHORIZED {
@@ -139,7 +142,13 @@ async fn push_batch(
     body: Bytes,
 ) -> Result<Response, Error> {
     if is_json_lines(&headers) {
-        return push_lines(&svc, &scene, &body);
+        let max_rejected = svc.scene(&scene)?.limits().max_rejected_lines;
+        let lines = LineRun::new(svc, scene, body, max_rejected);
+        return Ok((
+            [(http::header::CONTENT_TYPE, "application/json")],
+            axum::body::Body::from_stream(lines.into_stream()),
+        )
+            .into_response());
     }
     let batch: Batch = serde_json::from_slice(&body).map_err(|e| {
         svc.metrics().error("invalid_argument");
@@ -149,55 +158,154 @@ async fn push_batch(
     Ok((StatusCode::ACCEPTED, Json(ack)).into_response())
 }
 
-/// JSON Lines body: every batch line is pushed in order (a recording's scene header line is
-/// skipped); the answer lists each line's outcome, so one bad line rejects only itself.
-fn push_lines(svc: &Service, scene: &str, body: &[u8]) -> Result<Response, Error> {
-    svc.scene(scene)?;
-    let (mut accepted, mut rejected, mut results) = (0usize, 0usize, Vec::new());
-    for (i, line) in body.split(|&b| b == b'\n').enumerate() {
-        if line.iter().all(u8::is_ascii_whitespace) {
-            continue;
-        }
-        let outcome = serde_json::from_slice::<serde_json::Value>(line)
-            .map_err(|e| Error::invalid("body", e.to_string()))
-            .and_then(|v| {
-                if v.get("scene").is_some() && v.get("camera").is_none() {
-                    return Ok(None);
-                }
-                let batch: Batch =
-                    serde_json::from_value(v).map_err(|e| Error::invalid("body", e.to_string()))?;
-                svc.push(scene, batch).map(Some)
-            });
-        let line_no = i + 1;
-        match outcome {
-            Ok(None) => {}
-            Ok(Some(ack)) => {
-                accepted += 1;
-                results.push(serde_json::json!({ "line": line_no, "accepted": true, "camera": ack.camera, "frame_id": ack.frame_id }));
-            }
-            Err(e) => {
-                if matches!(e, Error::InvalidArgument { ref field, .. } if field == "body") {
-                    svc.metrics().error(e.kind());
-                }
-                rejected += 1;
-                results.push(serde_json::json!({
-                    "line": line_no, "accepted": false,
-                    "error": { "kind": e.kind(), "message": e.to_string() },
-                }));
-            }
+/// Input bytes one step of a [`LineRun`] may parse before it yields.
+const LINES_STEP_BYTES: usize = 64 << 10;
+/// Output bytes after which a step yields its chunk.
+const LINES_CHUNK_BYTES: usize = 16 << 10;
+
+/// A JSON Lines body pushed line by line (a recording's scene header line is skipped), its
+/// answer streamed as it goes: `{"results": [{"line", "accepted", ...}, ...], "accepted": N,
+/// "rejected": M}` plus `"stopped_at_line"` and `"stopped"` when it stopped early.
+///
+/// Bounded by construction: each step parses at most [`LINES_STEP_BYTES`] of input on the
+/// async worker thread and yields one output chunk; the next step runs only when the client
+/// has taken the previous chunk (HTTP backpressure), so neither the results nor the time of
+/// one step grow with the body. Once more than `max_rejected` lines were rejected and rejected
+/// lines outnumber accepted ones, the rest of the body is skipped.
+struct LineRun {
+    svc: Arc<Service>,
+    scene: String,
+    body: Bytes,
+    pos: usize,
+    line_no: usize,
+    accepted: usize,
+    rejected: usize,
+    max_rejected: usize,
+    first: bool,
+    done: bool,
+}
+
+impl LineRun {
+    fn new(svc: Arc<Service>, scene: String, body: Bytes, max_rejected: usize) -> Self {
+        LineRun {
+            svc,
+            scene,
+            body,
+            pos: 0,
+            line_no: 0,
+            accepted: 0,
+            rejected: 0,
+            max_rejected,
+            first: true,
+            done: false,
         }
     }
-    Ok(
-        Json(serde_json::json!({ "accepted": accepted, "rejected": rejected, "results": results }))
-            .into_response(),
-    )
+
+    fn into_stream(self) -> impl futures::Stream<Item = Result<Bytes, Infallible>> + Send {
+        futures::stream::unfold(self, |mut run| async move {
+            if run.done {
+                return None;
+            }
+            // Let other tasks on this worker run between steps.
+            tokio::task::coop::consume_budget().await;
+            let chunk = run.step();
+            Some((Ok(chunk), run))
+        })
+    }
+
+    /// One line's outcome: `None` for skipped lines (blank, scene header).
+    fn line(&self, line: &[u8]) -> Option<Result<BatchAck, Error>> {
+        if line.iter().all(u8::is_ascii_whitespace) {
+            return None;
+        }
+        let v = match serde_json::from_slice::<serde_json::Value>(line) {
+            Ok(v) => v,
+            Err(e) => return Some(Err(Error::invalid("body", e.to_string()))),
+        };
+        if v.get("scene").is_some() && v.get("camera").is_none() {
+            return None;
+        }
+        Some(
+            serde_json::from_value::<Batch>(v)
+                .map_err(|e| Error::invalid("body", e.to_string()))
+                .and_then(|b| self.svc.push(&self.scene, b)),
+        )
+    }
+
+    /// Processes lines until the step's input or output budget is spent; returns the output.
+    fn step(&mut self) -> Bytes {
+        let mut out = Vec::with_capacity(LINES_CHUNK_BYTES + 1024);
+        if self.first {
+            out.extend_from_slice(b"{\"results\":[");
+        }
+        let start = self.pos;
+        while self.pos < self.body.len()
+            && self.pos - start < LINES_STEP_BYTES
+            && out.len() < LINES_CHUNK_BYTES
+        {
+            if self.rejected > self.max_rejected && self.rejected > self.accepted {
+                break;
+            }
+            let rest = &self.body[self.pos..];
+            let len = rest.iter().position(|&b| b == b'\n').unwrap_or(rest.len());
+            let line = self.body.slice(self.pos..self.pos + len);
+            self.pos += len + 1;
+            self.line_no += 1;
+            let item = match self.line(&line) {
+                None => continue,
+                Some(Ok(ack)) => {
+                    self.accepted += 1;
+                    serde_json::json!({ "line": self.line_no, "accepted": true, "camera": ack.camera, "frame_id": ack.frame_id })
+                }
+                Some(Err(e)) => {
+                    if matches!(e, Error::InvalidArgument { ref field, .. } if field == "body") {
+                        self.svc.metrics().error(e.kind());
+                    }
+                    self.rejected += 1;
+                    serde_json::json!({
+                        "line": self.line_no, "accepted": false,
+                        "error": { "kind": e.kind(), "message": super::truncate_echo(&e.to_string()) },
+                    })
+                }
+            };
+            if !self.first {
+                out.push(b',');
+            }
+            self.first = false;
+            serde_json::to_writer(&mut out, &item).expect("JSON values serialize");
+        }
+        let stop = self.rejected > self.max_rejected && self.rejected > self.accepted;
+        if self.pos >= self.body.len() || stop {
+            self.done = true;
+            let mut tail =
+                serde_json::json!({ "accepted": self.accepted, "rejected": self.rejected });
+            if self.pos < self.body.len() {
+                tail["stopped_at_line"] = (self.line_no + 1).into();
+                tail["stopped"] = format!(
+                    "more than {} lines rejected, more than were accepted (--max-rejected-lines); the rest of the body was not read",
+                    self.max_rejected
+                )
+                .into();
+            }
+            let tail = serde_json::to_string(&tail).expect("JSON values serialize");
+            out.extend_from_slice(b"],");
+            out.extend_from_slice(&tail.as_bytes()[1..]);
+        }
+        // Drop what the body no longer needs as soon as possible.
+        if self.done {
+            self.body = Bytes::new();
+        }
+        Bytes::from(out)
+    }
 }
 
 async fn events(
     State(svc): State<Arc<Service>>,
     Path(scene): Path<String>,
+    conn: Option<axum::Extension<super::conn::ConnHandle>>,
 ) -> Result<Response, Error> {
-    let results = svc.subscribe(&scene)?;
+    let stall = svc.stall_timeout();
+    let results = svc.subscribe(&scene, conn.map(|c| c.0), stall)?;
     let events = results.map(|r| {
         Ok::<_, Infallible>(match r {
             Ok(r) => Event::default()

@@ -67,7 +67,8 @@ impl Metrics {
     }
 
     /// One API request (`transport` = grpc | http, `method` its route) and its duration to the
-    /// response head.
+    /// response head. Every label value must come from a closed set (the caller maps client
+    /// input onto known names or `other`), or the registry grows without bound.
     pub fn request(&self, transport: &str, method: &str, status: &str, took: Duration) {
         let l = [
             ("transport", transport),
@@ -100,6 +101,38 @@ impl Metrics {
     /// One duplicate batch.
     pub fn duplicate(&self, scene: &str) {
         self.inc("crossview_duplicate_batches_total", &[("scene", scene)]);
+    }
+
+    /// One batch refused as out of the frame-id window.
+    pub fn out_of_range(&self, scene: &str) {
+        self.inc("crossview_out_of_range_batches_total", &[("scene", scene)]);
+    }
+
+    /// `n` boxes clipped to their image (they overlapped its edge).
+    pub fn clipped(&self, scene: &str, n: usize) {
+        self.recorder
+            .register_counter(
+                &key("crossview_clipped_boxes_total", &[("scene", scene)]),
+                &META,
+            )
+            .increment(n as u64);
+    }
+
+    /// Open connections of the shared port.
+    pub fn connections(&self, n: usize) {
+        self.recorder
+            .register_gauge(&key("crossview_connections", &[]), &META)
+            .set(n as f64);
+    }
+
+    /// One connection refused at the connection cap (every open one had a request in flight).
+    pub fn connection_refused(&self) {
+        self.inc("crossview_connections_refused_total", &[]);
+    }
+
+    /// One idle connection closed to make room for a new one at the connection cap.
+    pub fn connection_evicted(&self) {
+        self.inc("crossview_connections_evicted_total", &[]);
     }
 
     /// One frame emitted by the synchronizer.

@@ -11,7 +11,10 @@
 
 pub mod api;
 pub mod auth;
+pub mod body;
 pub mod config;
+pub mod conn;
+pub mod cost;
 pub mod engine;
 pub mod grpc;
 pub mod http;
@@ -31,26 +34,44 @@ pub mod pb {
         tonic::include_file_descriptor_set!("crossview_descriptor");
 }
 
+use std::borrow::Cow;
 use std::future::Future;
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use axum::Router;
 use axum::extract::{MatchedPath, Request, State};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
-use hyper_util::rt::{TokioExecutor, TokioIo};
+use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
 use hyper_util::server::conn::auto;
 use hyper_util::service::TowerToHyperService;
 use tokio::net::TcpListener;
 use tower::ServiceExt;
 
-pub use config::{Limits, ModelSpec, ServeConfig, TlsConfig};
+pub use config::{ConnectionLimits, Limits, ModelSpec, ServeConfig, TlsConfig};
 pub use scene::{Scene, SceneInfo};
 pub use service::Service;
 
 use crate::model::Encoder;
 use crate::{Error, Result};
+
+/// Longest error message (in bytes) sent back to a client: messages echo client input
+/// (camera and scene names, JSON decoding errors), which must not come back unbounded.
+pub const MAX_ERROR_MESSAGE: usize = 512;
+
+/// `text` cut to at most [`MAX_ERROR_MESSAGE`] bytes (at a character boundary), saying how
+/// long it was.
+pub fn truncate_echo(text: &str) -> Cow<'_, str> {
+    if text.len() <= MAX_ERROR_MESSAGE {
+        return Cow::Borrowed(text);
+    }
+    let mut end = MAX_ERROR_MESSAGE;
+    while !text.is_char_boundary(end) {
+        end -= 1;
+    }
+    Cow::Owned(format!("{}… ({} bytes in all)", &text[..end], text.len()))
+}
 
 /// A configured server with its scenes started, ready to [`serve`](Server::serve).
 #[derive(Debug)]
@@ -95,7 +116,10 @@ impl Server {
             )?);
         }
         Ok(Server {
-            service: Arc::new(Service::new(started, metrics)),
+            service: Arc::new(
+                Service::new(started, metrics)
+                    .with_stall_timeout(config.connections.subscriber_stall_timeout),
+            ),
             config,
         })
     }
@@ -125,9 +149,22 @@ impl Server {
         for scene in self.service.scene_list() {
             spawn_timer(scene, self.service.shutting_down());
         }
-        let graceful = hyper_util::server::graceful::GracefulShutdown::new();
-        let builder = auto::Builder::new(TokioExecutor::new());
+        let limits = self.config.connections;
+        let connections = conn::Connections::new(limits, self.service.metrics().clone());
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let mut builder = auto::Builder::new(TokioExecutor::new());
+        builder
+            .http1()
+            .timer(TokioTimer::new())
+            .header_read_timeout(limits.header_read_timeout);
+        builder
+            .http2()
+            .timer(TokioTimer::new())
+            .max_concurrent_streams(limits.http2_max_streams)
+            .keep_alive_interval(limits.http2_keepalive)
+            .keep_alive_timeout(limits.http2_keepalive);
         tokio::pin!(shutdown);
+        let mut refused_logged: Option<Instant> = None;
         loop {
             let (stream, peer) = tokio::select! {
                 r = listener.accept() => match r {
@@ -140,50 +177,88 @@ impl Server {
                 },
                 _ = &mut shutdown => break,
             };
+            let Some(guard) = connections.admit() else {
+                // Refused at the cap: close at once. Log at most once a second.
+                if refused_logged.is_none_or(|t| t.elapsed() >= Duration::from_secs(1)) {
+                    tracing::warn!(%peer, max = limits.max_connections, "connection cap reached, refusing connections");
+                    refused_logged = Some(Instant::now());
+                }
+                drop(stream);
+                continue;
+            };
             let _ = stream.set_nodelay(true);
-            let svc = TowerToHyperService::new(
-                router
-                    .clone()
-                    .map_request(|r: Request<hyper::body::Incoming>| r.map(axum::body::Body::new)),
-            );
+            let state = guard.state.clone();
+            let router = router.clone();
+            let svc = TowerToHyperService::new(tower::service_fn(
+                move |r: Request<hyper::body::Incoming>| {
+                    let active = state.begin();
+                    let mut r = r.map(axum::body::Body::new);
+                    r.extensions_mut().insert(conn::ConnHandle(state.clone()));
+                    let router = router.clone();
+                    async move {
+                        let resp = router.oneshot(r).await?;
+                        Ok::<_, std::convert::Infallible>(
+                            resp.map(|b| axum::body::Body::new(conn::Tracked::new(b, active))),
+                        )
+                    }
+                },
+            ));
             let builder = builder.clone();
-            let watcher = graceful.watcher();
             let tls = tls.clone();
+            let stop = stop_rx.clone();
             tokio::spawn(async move {
+                let state = guard.state.clone();
                 let r = match tls {
-                    Some(acc) => match acc.accept(stream).await {
-                        Ok(s) => {
-                            let conn = builder.serve_connection_with_upgrades(TokioIo::new(s), svc);
-                            watcher.watch(conn.into_owned()).await
+                    Some(acc) => {
+                        match tokio::time::timeout(limits.header_read_timeout, acc.accept(stream))
+                            .await
+                        {
+                            Ok(Ok(s)) => {
+                                let conn =
+                                    builder.serve_connection_with_upgrades(TokioIo::new(s), svc);
+                                conn::drive(conn.into_owned(), state, limits, stop).await
+                            }
+                            Ok(Err(e)) => {
+                                tracing::debug!(%peer, error = %e, "TLS handshake failed");
+                                return;
+                            }
+                            Err(_) => {
+                                tracing::debug!(%peer, "TLS handshake timed out");
+                                return;
+                            }
                         }
-                        Err(e) => {
-                            tracing::debug!(%peer, error = %e, "TLS handshake failed");
-                            return;
-                        }
-                    },
+                    }
                     None => {
                         let conn =
                             builder.serve_connection_with_upgrades(TokioIo::new(stream), svc);
-                        watcher.watch(conn.into_owned()).await
+                        conn::drive(conn.into_owned(), state, limits, stop).await
                     }
                 };
                 if let Err(e) = r {
                     tracing::debug!(%peer, error = %e, "connection ended with error");
                 }
+                drop(guard);
             });
         }
         drop(listener);
+        let deadline = Instant::now() + self.config.shutdown_grace;
         tracing::info!("shutdown: stopping intake and flushing pending frames");
         let service = self.service.clone();
-        tokio::task::spawn_blocking(move || service.close())
+        tokio::task::spawn_blocking(move || service.close_by(Some(deadline)))
             .await
             .map_err(|e| Error::Runtime(format!("shutdown task failed: {e}")))?;
         tracing::info!("shutdown: frames flushed, closing connections");
-        if tokio::time::timeout(self.config.shutdown_grace, graceful.shutdown())
+        let _ = stop_tx.send(true);
+        let until = deadline.max(Instant::now() + Duration::from_millis(200));
+        if tokio::time::timeout_at(until.into(), connections.drained())
             .await
             .is_err()
         {
-            tracing::warn!("shutdown: grace period over, dropping open connections");
+            tracing::warn!(
+                open = connections.len(),
+                "shutdown: grace period over, dropping open connections"
+            );
+            connections.kill_all();
         }
         Ok(())
     }
@@ -246,8 +321,9 @@ fn spawn_timer(scene: Arc<Scene>, stop: impl Future<Output = ()> + Send + 'stati
     });
 }
 
-/// A tonic service mounted on an axum path prefix.
-fn grpc_route<S>(router: Router, svc: S) -> Router
+/// A tonic service mounted on an axum path prefix; each request body is bounded per message
+/// by `body_timeout` ([`body::GrpcMessageDeadline`]).
+fn grpc_route<S>(router: Router, svc: S, body_timeout: Duration) -> Router
 where
     S: tower::Service<::http::Request<tonic::body::Body>, Error = std::convert::Infallible>
         + tonic::server::NamedService
@@ -260,7 +336,9 @@ where
 {
     router.route_service(
         &format!("/{}/{{*rest}}", S::NAME),
-        svc.map_request(|r: Request| r.map(tonic::body::Body::new)),
+        svc.map_request(move |r: Request| {
+            r.map(|b| tonic::body::Body::new(body::GrpcMessageDeadline::new(b, body_timeout)))
+        }),
     )
 }
 
@@ -285,16 +363,29 @@ async fn build_router(svc: &Arc<Service>, config: &ServeConfig) -> Result<Router
         .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
         .build_v1()
         .map_err(|e| Error::Runtime(format!("gRPC reflection: {e}")))?;
-    let association = AssociationServer::new(grpc::GrpcService::new(svc.clone()))
-        .max_decoding_message_size(limit)
-        .max_encoding_message_size(usize::MAX);
+    let association = AssociationServer::new(grpc::GrpcService::new(
+        svc.clone(),
+        config.connections.subscriber_stall_timeout,
+    ))
+    .max_decoding_message_size(limit)
+    .max_encoding_message_size(usize::MAX);
     let mut router = Router::new();
-    router = grpc_route(router, association);
-    router = grpc_route(router, health);
-    router = grpc_route(router, reflection);
+    let body_timeout = config.connections.body_timeout;
+    router = grpc_route(router, association, body_timeout);
+    router = grpc_route(router, health, body_timeout);
+    router = grpc_route(router, reflection, body_timeout);
+    let body_limits = body::BodyLimits {
+        max_bytes: limit,
+        timeout: body_timeout,
+    };
     let keys = auth::ApiKeys::new(&config.api_keys, svc.metrics().clone());
     Ok(router
-        .merge(http::router(svc.clone(), limit))
+        .merge(
+            http::router(svc.clone(), limit).layer(middleware::from_fn_with_state(
+                body_limits,
+                body::buffer_body,
+            )),
+        )
         .fallback(fallback)
         .layer(middleware::from_fn_with_state(keys, auth::require_token))
         .layer(middleware::from_fn_with_state(
@@ -306,19 +397,17 @@ async fn build_router(svc: &Arc<Service>, config: &ServeConfig) -> Result<Router
 /// Counts every request by transport, route and outcome, and times it to the response head.
 async fn track_requests(State(m): State<metrics::Metrics>, req: Request, next: Next) -> Response {
     let grpc = auth::is_grpc(&req);
-    let method = match req.extensions().get::<MatchedPath>() {
-        Some(_) if grpc => req.uri().path().to_string(),
-        Some(p) => format!("{} {}", req.method(), p.as_str()),
-        None => "unmatched".to_string(),
-    };
+    let method = request_label(&req, grpc);
     let t = Instant::now();
     let resp = next.run(req).await;
     let status = if grpc {
-        resp.headers()
+        // Server-made, but parsed into the closed set of gRPC codes all the same.
+        let code = resp
+            .headers()
             .get("grpc-status")
             .and_then(|v| v.to_str().ok())
-            .unwrap_or("0")
-            .to_string()
+            .map_or(Some(0), |v| v.parse::<u8>().ok().filter(|c| *c <= 16));
+        code.map_or_else(|| "other".to_string(), |c| c.to_string())
     } else {
         resp.status().as_u16().to_string()
     };
@@ -328,4 +417,54 @@ async fn track_requests(State(m): State<metrics::Metrics>, req: Request, next: N
     let transport = if grpc { "grpc" } else { "http" };
     m.request(transport, &method, &status, t.elapsed());
     resp
+}
+
+/// The gRPC methods this server serves: the only gRPC label values besides `other`.
+const GRPC_METHODS: &[&str] = &[
+    "/crossview.v1.Association/Associate",
+    "/crossview.v1.Association/Push",
+    "/crossview.v1.Association/Subscribe",
+    "/crossview.v1.Association/Stream",
+    "/crossview.v1.Association/ListScenes",
+    "/crossview.v1.Association/GetScene",
+    "/grpc.health.v1.Health/Check",
+    "/grpc.health.v1.Health/Watch",
+    "/grpc.reflection.v1.ServerReflection/ServerReflectionInfo",
+];
+
+/// The `method` label of a request, from a closed set: a known gRPC method path or `other`;
+/// for HTTP a standard verb (else `OTHER`) and the matched route template, or `unmatched`.
+fn request_label(req: &Request, grpc: bool) -> String {
+    if grpc {
+        let path = req.uri().path();
+        return GRPC_METHODS
+            .iter()
+            .find(|m| **m == path)
+            .map_or("other", |m| m)
+            .to_string();
+    }
+    match req.extensions().get::<MatchedPath>() {
+        Some(p) => {
+            let verb = match req.method().as_str() {
+                v @ ("GET" | "POST" | "HEAD" | "PUT" | "DELETE" | "PATCH" | "OPTIONS") => v,
+                _ => "OTHER",
+            };
+            format!("{verb} {}", p.as_str())
+        }
+        None => "unmatched".to_string(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn echoed_text_is_truncated_at_a_char_boundary() {
+        assert_eq!(truncate_echo("short"), "short");
+        let long = "é".repeat(1000);
+        let t = truncate_echo(&long);
+        assert!(t.len() < MAX_ERROR_MESSAGE + 40, "{}", t.len());
+        assert!(t.ends_with("(2000 bytes in all)"), "{t}");
+    }
 }

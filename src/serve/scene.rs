@@ -5,8 +5,17 @@
 //! The worker — a dedicated thread owning the encoder — associates each frame with one encoder
 //! call and publishes the result on a broadcast channel, in queue order. Admission is bounded:
 //! when `queue_capacity` frames are queued, new batches and unary requests are shed with
-//! [`Error::ResourceExhausted`] before anything is accepted.
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+//! [`Error::ResourceExhausted`] before anything is accepted; a batch (or unary request) that
+//! would make its frame cost more than `max_frame_cost` ([`super::cost`]) is refused; and a
+//! frame whose association has not started `frame_deadline` after its first batch (or after
+//! the shutdown deadline) is published with an error instead of identities, so every accepted
+//! batch still appears in exactly one result.
+//!
+//! Boxes overlapping their image's edge are clipped to the image
+//! ([`Detection::clip_to_image`]) and counted (`crossview_clipped_boxes_total`); boxes
+//! entirely outside it are refused. The scene's appearance length is fixed by the first
+//! *accepted* batch carrying appearance vectors.
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
@@ -14,6 +23,7 @@ use tokio::sync::{Notify, broadcast, oneshot};
 
 use super::api::{FrameResult, IdentityOut, Member, SceneDescription};
 use super::config::Limits;
+use super::cost::frame_cost;
 use super::engine::{self, EngineConfig};
 use super::metrics::Metrics;
 use super::sync::{Emitted, Rejection, Synchronizer};
@@ -21,8 +31,8 @@ use crate::core::{Detection, Frame, SceneSpec};
 use crate::model::Encoder;
 use crate::{Error, Result};
 
-/// Largest accepted magnitude of a box coordinate (pixels) or appearance value: far beyond any
-/// real image, small enough that squared distances stay finite in `f32`.
+/// Largest accepted magnitude of an appearance value: small enough that squared distances stay
+/// finite in `f32`. (Box coordinates are bounded by clipping to the image.)
 pub const MAX_MAGNITUDE: f32 = 1e6;
 
 /// Static facts about a scene (from its model file).
@@ -43,7 +53,7 @@ enum Job {
     Unary {
         frame: Frame,
         started: Instant,
-        reply: oneshot::Sender<FrameResult>,
+        reply: oneshot::Sender<Result<FrameResult>>,
     },
 }
 
@@ -61,11 +71,15 @@ pub struct Scene {
     intake: Mutex<Intake>,
     /// Frames queued for or inside the worker.
     queued: Arc<AtomicUsize>,
-    /// Appearance length fixed by the first vector accepted (0 = unknown).
+    /// Appearance length fixed by the first accepted batch with vectors (0 = unknown).
     appearance_len: AtomicUsize,
+    /// After this instant (set at shutdown) queued frames are published without association.
+    close_by: Arc<Mutex<Option<Instant>>>,
     closed: AtomicBool,
     subscribers: Arc<AtomicUsize>,
     results: Mutex<Option<broadcast::Sender<Arc<FrameResult>>>>,
+    /// Results published so far (for spotting subscribers that stopped reading).
+    published: Arc<AtomicU64>,
     /// Wakes the timer task when a new frame starts waiting.
     pub(crate) wake: Notify,
     worker: Mutex<Option<std::thread::JoinHandle<()>>>,
@@ -104,12 +118,17 @@ impl Scene {
         let (tx, rx) = std::sync::mpsc::channel::<Job>();
         let (results, _) = broadcast::channel(limits.subscriber_buffer.max(1));
         let queued = Arc::new(AtomicUsize::new(0));
+        let close_by = Arc::new(Mutex::new(None));
+        let published = Arc::new(AtomicU64::new(0));
         let worker = Worker {
             info: info.clone(),
             encoder,
             results: results.clone(),
             queued: queued.clone(),
             metrics: metrics.clone(),
+            frame_deadline: limits.frame_deadline,
+            close_by: close_by.clone(),
+            published: published.clone(),
         };
         let handle = std::thread::Builder::new()
             .name(format!("encoder-{}", info.spec.name))
@@ -117,7 +136,8 @@ impl Scene {
             .map_err(|e| Error::Runtime(format!("cannot start encoder thread: {e}")))?;
         Ok(Arc::new(Scene {
             intake: Mutex::new(Intake {
-                sync: Synchronizer::new(n, sync_timeout, max_pending),
+                sync: Synchronizer::new(n, sync_timeout, max_pending)
+                    .with_window(limits.frame_window),
                 jobs: Some(tx),
             }),
             info,
@@ -126,9 +146,11 @@ impl Scene {
             metrics,
             queued,
             appearance_len: AtomicUsize::new(0),
+            close_by,
             closed: AtomicBool::new(false),
             subscribers: Arc::new(AtomicUsize::new(0)),
             results: Mutex::new(Some(results)),
+            published,
             wake: Notify::new(),
             worker: Mutex::new(Some(handle)),
         }))
@@ -137,6 +159,11 @@ impl Scene {
     /// Static facts.
     pub fn info(&self) -> &SceneInfo {
         &self.info
+    }
+
+    /// The size and cost limits the scene enforces.
+    pub fn limits(&self) -> &Limits {
+        &self.limits
     }
 
     /// Scene name.
@@ -158,9 +185,17 @@ impl Scene {
         }
     }
 
-    /// Checks one camera's detections: count cap, every box, one appearance length per scene.
+    /// Checks one camera's detections and clips boxes overlapping the image edge: count cap,
+    /// every box and value, one appearance length within the batch and equal to the scene's
+    /// once known. Returns the batch's appearance length (when its detections carry vectors);
+    /// it does not fix the scene's (only an accepted batch does, see [`Self::push`]).
     /// `field` prefixes error fields (e.g. `views[1].detections`).
-    fn validate(&self, field: &str, detections: &[Detection]) -> Result<()> {
+    fn validate(
+        &self,
+        field: &str,
+        camera: usize,
+        detections: &mut [Detection],
+    ) -> Result<Option<usize>> {
         if detections.len() > self.limits.max_detections {
             return Err(Error::invalid(
                 field,
@@ -171,12 +206,13 @@ impl Scene {
                 ),
             ));
         }
+        let cam = &self.info.spec.cameras[camera];
         let mut expected = match self.appearance_len.load(Ordering::Relaxed) {
             0 => None,
             n => Some(n),
         };
-        let mut with_app = 0;
-        for (i, d) in detections.iter().enumerate() {
+        let (mut with_app, mut clipped) = (0, 0);
+        for (i, d) in detections.iter_mut().enumerate() {
             let f = format!("{field}[{i}]");
             if let Some(app) = &d.appearance {
                 if app.len() > self.limits.max_appearance_len {
@@ -193,15 +229,6 @@ impl Scene {
                 with_app += 1;
             }
             d.validate(&f, expected)?;
-            if d.bbox.iter().any(|v| v.abs() > MAX_MAGNITUDE) {
-                return Err(Error::invalid(
-                    format!("{f}.bbox"),
-                    format!(
-                        "coordinates must be at most {MAX_MAGNITUDE} pixels, got {:?}",
-                        d.bbox
-                    ),
-                ));
-            }
             if let Some(app) = &d.appearance
                 && let Some(k) = app.iter().position(|v| v.abs() > MAX_MAGNITUDE)
             {
@@ -210,6 +237,7 @@ impl Scene {
                     format!("magnitude must be at most {MAX_MAGNITUDE}"),
                 ));
             }
+            clipped += usize::from(d.clip_to_image(&f, cam)?);
         }
         if with_app != 0 && with_app != detections.len() {
             return Err(Error::invalid(
@@ -217,16 +245,35 @@ impl Scene {
                 "present on some detections of the batch but not all",
             ));
         }
-        if let Some(n) = expected
-            && with_app > 0
-            && let Err(known) =
-                self.appearance_len
-                    .compare_exchange(0, n, Ordering::Relaxed, Ordering::Relaxed)
-            && known != n
-        {
-            return Err(Error::invalid(
+        if clipped > 0 {
+            self.metrics.clipped(self.name(), clipped);
+        }
+        Ok(expected.filter(|_| with_app > 0))
+    }
+
+    /// Checks a batch's appearance length against the scene's (known or not yet).
+    fn check_appearance(&self, field: &str, len: Option<usize>) -> Result<()> {
+        match (self.appearance_len.load(Ordering::Relaxed), len) {
+            (known, Some(n)) if known != 0 && known != n => Err(Error::invalid(
                 format!("{field}[0].appearance"),
                 format!("expected {known} values, got {n}"),
+            )),
+            _ => Ok(()),
+        }
+    }
+
+    /// Refuses a frame that would cost more than the budget ([`super::cost`]).
+    fn check_cost(&self, field: &str, frame_id: u64, counts: &[usize]) -> Result<()> {
+        let cost = frame_cost(counts);
+        if cost > self.limits.max_frame_cost {
+            return Err(Error::invalid(
+                field,
+                format!(
+                    "frame {frame_id} with {counts:?} boxes per camera would cost {cost} \
+                     association units, over the limit of {} (--max-frame-cost): send fewer \
+                     detections per camera",
+                    self.limits.max_frame_cost
+                ),
             ));
         }
         Ok(())
@@ -265,15 +312,29 @@ impl Scene {
             .pending(self.name(), intake.sync.pending_frames());
     }
 
-    /// Accepts one camera batch into the synchronizer (see the module docs). Late and duplicate
-    /// batches are rejected and counted.
-    pub fn push(&self, camera: &str, frame_id: u64, detections: Vec<Detection>) -> Result<()> {
+    /// Accepts one camera batch into the synchronizer (see the module docs). Late, duplicate
+    /// and out-of-range batches are rejected and counted.
+    pub fn push(&self, camera: &str, frame_id: u64, mut detections: Vec<Detection>) -> Result<()> {
         let cam = self.info.spec.camera_index(camera)?;
-        self.validate("detections", &detections)?;
+        let app_len = self.validate("detections", cam, &mut detections)?;
+        let n_boxes = detections.len();
         let mut intake = lock(&self.intake);
         // Shed before accepting anything. One batch can release several frames at once, so the
         // queue may overshoot the capacity by at most `max_pending_frames`: still bounded.
         self.admit(1)?;
+        // Under the intake lock: no other batch can fix the length or grow the frame meanwhile.
+        self.check_appearance("detections", app_len)?;
+        if let Some(f) = intake.sync.pending_frame(frame_id)
+            && f.views[cam].is_none()
+        {
+            let mut counts: Vec<usize> = f
+                .views
+                .iter()
+                .map(|v| v.as_ref().map_or(0, Vec::len))
+                .collect();
+            counts[cam] = n_boxes;
+            self.check_cost("detections", frame_id, &counts)?;
+        }
         let emitted = match intake.sync.push(cam, frame_id, detections, Instant::now()) {
             Ok(e) => e,
             Err(r) => {
@@ -295,9 +356,37 @@ impl Scene {
                             frame_id,
                         }
                     }
+                    Rejection::OutOfRange => {
+                        self.metrics.out_of_range(self.name());
+                        let w = intake.sync.window();
+                        let reason = match intake.sync.last_emitted() {
+                            Some(last) => format!(
+                                "more than {w} (--frame-window) from the last emitted frame \
+                                 {last}; the scene follows new ids once a majority of its \
+                                 cameras send them"
+                            ),
+                            None => format!(
+                                "more than {w} (--frame-window) from the oldest pending frame; \
+                                 the scene follows new ids once a majority of its cameras \
+                                 send them"
+                            ),
+                        };
+                        Error::FrameOutOfRange {
+                            scene,
+                            camera,
+                            frame_id,
+                            reason,
+                        }
+                    }
                 });
             }
         };
+        if let Some(n) = app_len {
+            // Only an accepted batch fixes the scene's appearance length.
+            let _ =
+                self.appearance_len
+                    .compare_exchange(0, n, Ordering::Relaxed, Ordering::Relaxed);
+        }
         self.metrics.batch(self.name());
         self.enqueue(&mut intake, emitted);
         drop(intake);
@@ -325,7 +414,8 @@ impl Scene {
         let started = Instant::now();
         let n = self.info.spec.cameras.len();
         let mut frame = Frame::new(frame_id, n);
-        for (k, (camera, dets)) in views.into_iter().enumerate() {
+        let mut app_len: Option<usize> = None;
+        for (k, (camera, mut dets)) in views.into_iter().enumerate() {
             let c = self.info.spec.camera_index(&camera)?;
             if frame.views[c].is_some() {
                 return Err(Error::invalid(
@@ -333,9 +423,27 @@ impl Scene {
                     format!("camera '{camera}' appears twice"),
                 ));
             }
-            self.validate(&format!("views[{k}].detections"), &dets)?;
+            let field = format!("views[{k}].detections");
+            let len = self.validate(&field, c, &mut dets)?;
+            // One length over the whole request; a unary call never fixes the scene's.
+            if let (Some(a), Some(b)) = (app_len, len)
+                && a != b
+            {
+                return Err(Error::invalid(
+                    format!("{field}[0].appearance"),
+                    format!("expected {a} values, got {b}"),
+                ));
+            }
+            app_len = app_len.or(len);
+            self.check_appearance(&field, len)?;
             frame.views[c] = Some(dets);
         }
+        let counts: Vec<usize> = frame
+            .views
+            .iter()
+            .map(|v| v.as_ref().map_or(0, Vec::len))
+            .collect();
+        self.check_cost("views", frame_id, &counts)?;
         let (tx, rx) = oneshot::channel();
         {
             let intake = lock(&self.intake);
@@ -359,11 +467,16 @@ impl Scene {
         }
         let result = rx
             .await
-            .map_err(|_| Error::Unavailable("encoder worker stopped".into()))?;
+            .map_err(|_| Error::Unavailable("encoder worker stopped".into()))??;
         match &result.error {
             Some(e) => Err(Error::Runtime(e.clone())),
             None => Ok(result),
         }
+    }
+
+    /// Results published so far.
+    pub fn published(&self) -> u64 {
+        self.published.load(Ordering::Acquire)
     }
 
     /// A receiver of this scene's frame results from now on, or `Unavailable` after shutdown;
@@ -388,7 +501,11 @@ impl Scene {
     /// Graceful shutdown of this scene: refuses new work, flushes pending frames as partial
     /// results, lets the worker finish its queue and publish them, then closes the broadcast
     /// so subscriber streams end. Blocking (joins the worker thread).
-    pub fn close(&self) {
+    ///
+    /// With `deadline`, frames still queued after it are published with an error instead of
+    /// being associated, so shutdown ends within about one frame's cost of it.
+    pub fn close(&self, deadline: Option<Instant>) {
+        *lock(&self.close_by) = deadline;
         self.closed.store(true, Ordering::Release);
         {
             let mut intake = lock(&self.intake);
@@ -428,17 +545,71 @@ struct Worker {
     results: broadcast::Sender<Arc<FrameResult>>,
     queued: Arc<AtomicUsize>,
     metrics: Metrics,
+    frame_deadline: Duration,
+    close_by: Arc<Mutex<Option<Instant>>>,
+    published: Arc<AtomicU64>,
+}
+
+/// Why a queued frame is published without association.
+enum Skip {
+    Deadline(Duration),
+    Shutdown,
 }
 
 impl Worker {
+    /// Whether a frame first seen at `first_seen` must be skipped now.
+    fn skip(&self, first_seen: Instant) -> Option<Skip> {
+        let now = Instant::now();
+        let waited = now.saturating_duration_since(first_seen);
+        if lock(&self.close_by).is_some_and(|t| now >= t) {
+            Some(Skip::Shutdown)
+        } else if waited > self.frame_deadline {
+            Some(Skip::Deadline(waited))
+        } else {
+            None
+        }
+    }
+
+    fn skipped_error(&self, skip: &Skip) -> Error {
+        match skip {
+            Skip::Deadline(waited) => {
+                self.metrics.error("deadline_exceeded");
+                Error::ResourceExhausted(format!(
+                    "frame not associated: it waited {:.3}s for inference, over the frame \
+                     deadline of {:?} (--frame-deadline)",
+                    waited.as_secs_f64(),
+                    self.frame_deadline
+                ))
+            }
+            Skip::Shutdown => {
+                self.metrics.error("unavailable");
+                Error::Unavailable(
+                    "frame not associated: the server is shutting down and its \
+                     --shutdown-grace is over"
+                        .into(),
+                )
+            }
+        }
+    }
+
     fn run(mut self, rx: std::sync::mpsc::Receiver<Job>) {
         while let Ok(job) = rx.recv() {
             match job {
                 Job::Stream(e) => {
-                    let r = self.process(&e.frame, e.first_seen);
+                    let r = match self.skip(e.first_seen) {
+                        None => self.process(&e.frame, e.first_seen),
+                        Some(skip) => {
+                            let err = self.skipped_error(&skip);
+                            let mut r = self.result(&e.frame, e.first_seen, Vec::new());
+                            r.error = Some(err.to_string());
+                            r
+                        }
+                    };
                     self.metrics
                         .frame_latency(&self.info.spec.name, e.first_seen.elapsed());
                     self.queued.fetch_sub(1, Ordering::AcqRel);
+                    // Count first, so a subscriber never sees more results than published.
+                    self.published.fetch_add(1, Ordering::AcqRel);
                     // No subscriber is not an error.
                     let _ = self.results.send(Arc::new(r));
                 }
@@ -447,7 +618,10 @@ impl Worker {
                     started,
                     reply,
                 } => {
-                    let r = self.process(&frame, started);
+                    let r = match self.skip(started) {
+                        None => Ok(self.process(&frame, started)),
+                        Some(skip) => Err(self.skipped_error(&skip)),
+                    };
                     self.queued.fetch_sub(1, Ordering::AcqRel);
                     let _ = reply.send(r);
                 }
@@ -492,6 +666,14 @@ impl Worker {
                 (Vec::new(), Some(e.to_string()))
             }
         };
+        let mut r = self.result(frame, started, identities);
+        r.error = error;
+        r
+    }
+
+    /// The published form of `frame` with `identities`.
+    fn result(&self, frame: &Frame, started: Instant, identities: Vec<IdentityOut>) -> FrameResult {
+        let spec = &self.info.spec;
         FrameResult {
             scene: spec.name.clone(),
             frame_id: frame.frame_id,
@@ -505,7 +687,7 @@ impl Worker {
                 .collect(),
             identities,
             latency_ms: started.elapsed().as_secs_f64() * 1e3,
-            error,
+            error: None,
         }
     }
 }

@@ -3,8 +3,8 @@
 use std::collections::BTreeMap;
 use std::pin::Pin;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Instant;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::{Duration, Instant};
 
 use futures::{Stream, StreamExt};
 use tokio::sync::watch;
@@ -12,6 +12,7 @@ use tokio_stream::wrappers::BroadcastStream;
 use tokio_stream::wrappers::errors::BroadcastStreamRecvError;
 
 use super::api::{AssociateRequest, BatchAck, FrameResult, SceneDescription};
+use super::conn::ConnHandle;
 use super::metrics::Metrics;
 use super::scene::Scene;
 use crate::core::Batch;
@@ -29,6 +30,7 @@ pub struct Service {
     metrics: Metrics,
     ready: AtomicBool,
     shutdown: watch::Sender<bool>,
+    stall_timeout: Option<Duration>,
 }
 
 impl Service {
@@ -43,7 +45,19 @@ impl Service {
             metrics,
             ready: AtomicBool::new(true),
             shutdown,
+            stall_timeout: None,
         }
+    }
+
+    /// Disconnects result subscribers that stop reading for `stall` (see [`Self::subscribe`]).
+    pub fn with_stall_timeout(mut self, stall: Duration) -> Self {
+        self.stall_timeout = Some(stall);
+        self
+    }
+
+    /// The subscriber stall timeout, if any.
+    pub fn stall_timeout(&self) -> Option<Duration> {
+        self.stall_timeout
     }
 
     /// The metrics registry.
@@ -106,16 +120,35 @@ impl Service {
         self.track(s.associate(req.frame_id, views).await)
     }
 
-    /// The results of `scene` from now on.
-    pub fn subscribe(&self, scene: &str) -> Result<ResultStream> {
+    /// The results of `scene` from now on. With `conn` (the subscriber's connection) and a
+    /// stall timeout, a subscriber that has not taken a waiting result for that long is
+    /// disconnected (see [`watch_stall`]).
+    pub fn subscribe(
+        &self,
+        scene: &str,
+        conn: Option<ConnHandle>,
+        stall_timeout: Option<Duration>,
+    ) -> Result<ResultStream> {
         let s = self.scene(scene)?;
         let (rx, guard) = self.track(s.subscribe())?;
         let metrics = self.metrics.clone();
         let mut failed = false;
+        let taken = Arc::new(AtomicU64::new(0));
+        if let (Some(conn), Some(stall)) = (conn, stall_timeout) {
+            tokio::spawn(watch_stall(
+                s.clone(),
+                s.published(),
+                Arc::downgrade(&taken),
+                conn,
+                stall,
+                self.metrics.clone(),
+            ));
+        }
         let stream = BroadcastStream::new(rx)
             .map(move |item| {
                 // The stream owns the guard: the subscriber is counted while it lives.
                 let _ = &guard;
+                taken.fetch_add(1, Ordering::AcqRel);
                 item
             })
             .map(move |item| match item {
@@ -162,10 +195,53 @@ impl Service {
     /// Graceful shutdown: stops intake, flushes every scene's pending frames as partial results,
     /// waits for them to be published and closes the result streams. Blocking.
     pub fn close(&self) {
+        self.close_by(None);
+    }
+
+    /// [`close`](Self::close), but frames still queued at `deadline` are published with an
+    /// error instead of being associated (shutdown respects its grace period).
+    pub fn close_by(&self, deadline: Option<Instant>) {
         self.ready.store(false, Ordering::Release);
         self.shutdown.send_replace(true);
         for s in self.scenes.values() {
-            s.close();
+            s.close(deadline);
+        }
+    }
+}
+
+/// Watches one subscriber (until its stream is dropped): when results have waited for it,
+/// untaken, for `stall` — it stopped reading, so its transport stopped polling it — its
+/// connection is closed (for HTTP/2 that ends the connection's other streams too).
+async fn watch_stall(
+    scene: Arc<Scene>,
+    start: u64,
+    taken: std::sync::Weak<AtomicU64>,
+    conn: ConnHandle,
+    stall: Duration,
+    metrics: Metrics,
+) {
+    let tick = (stall / 4).max(Duration::from_millis(10));
+    let mut stuck_since: Option<(Instant, u64)> = None;
+    loop {
+        tokio::time::sleep(tick).await;
+        let Some(taken) = taken.upgrade() else { return };
+        let t = taken.load(Ordering::Acquire);
+        let waiting = scene.published().saturating_sub(start) > t;
+        stuck_since = match stuck_since {
+            Some((since, at)) if waiting && at == t => Some((since, at)),
+            _ if waiting => Some((Instant::now(), t)),
+            _ => None,
+        };
+        if let Some((since, _)) = stuck_since
+            && since.elapsed() >= stall
+        {
+            tracing::info!(
+                scene = scene.name(),
+                "dropping a subscriber that stopped reading"
+            );
+            metrics.error("subscriber_stalled");
+            conn.kill();
+            return;
         }
     }
 }

@@ -7,8 +7,21 @@
 //! - a frame whose first batch arrived `timeout` ago is emitted (partial if cameras are
 //!   missing), together with every older pending frame, so no frame waits longer than `timeout`;
 //! - when more than `max_pending` frames are pending, the oldest leave first;
-//! - a batch for a frame id at or below the last emitted one is *late*; a second batch of the
-//!   same camera for a pending frame is a *duplicate*; both are rejected and change nothing;
+//! - a batch for a frame id at or below the last emitted one (but within the window below) is
+//!   *late*; a second batch of the same camera for a pending frame is a *duplicate*; both are
+//!   rejected and change nothing;
+//! - **window**: frame ids must stay within `window` of the last emitted frame id (before
+//!   anything was emitted: of the oldest pending frame). A batch further ahead or further
+//!   behind is *out of range*: rejected, changing nothing, so no single batch (a frame id of
+//!   2^64−1, a jump to 10^9, far-future junk filling the pending slots) can make every later
+//!   frame late;
+//! - **restart**: camera ids restart, wrap and jump after long outages. Out-of-range batches
+//!   are remembered per camera until the next accepted batch; once the out-of-range batches of
+//!   a majority of the cameras (and at least two batches) lie within `window` of each other,
+//!   the synchronizer *re-anchors*: every pending frame leaves (reason
+//!   [`EmitReason::Restart`]), the last emitted id is forgotten and the batch that completed
+//!   the majority is accepted as the first of the new range. The other cameras' earlier
+//!   out-of-range batches stay rejected (their senders were told so);
 //! - [`Synchronizer::flush`] emits everything pending (graceful shutdown).
 //!
 //! Every accepted batch therefore ends up in exactly one emitted frame.
@@ -24,6 +37,8 @@ pub enum Rejection {
     Late,
     /// This camera already reported this frame.
     Duplicate,
+    /// The frame id is more than the window away from the scene's current frame ids.
+    OutOfRange,
 }
 
 /// Why a frame left the synchronizer.
@@ -37,6 +52,8 @@ pub enum EmitReason {
     Overflow,
     /// The synchronizer was flushed (shutdown).
     Flush,
+    /// A majority of cameras moved to frame ids outside the window (a restart).
+    Restart,
 }
 
 /// A frame that left the synchronizer.
@@ -73,7 +90,18 @@ pub struct Synchronizer {
     pending: BTreeMap<u64, Pending>,
     /// The highest emitted frame id; batches at or below it are late.
     last_emitted: Option<u64>,
+    /// How far (in frame ids) a batch may be from the current frame ids.
+    window: u64,
+    /// Per camera, its latest out-of-range frame id since the last accepted batch.
+    strays: Vec<Option<u64>>,
+    /// Out-of-range batches since the last accepted batch.
+    stray_batches: usize,
+    /// Re-anchors so far.
+    restarts: u64,
 }
+
+/// The default frame-id window (see the module docs).
+pub const DEFAULT_FRAME_WINDOW: u64 = 100_000;
 
 impl Synchronizer {
     /// A synchronizer for `num_cameras` cameras; `max_pending` is at least 1.
@@ -84,12 +112,78 @@ impl Synchronizer {
             max_pending: max_pending.max(1),
             pending: BTreeMap::new(),
             last_emitted: None,
+            window: DEFAULT_FRAME_WINDOW,
+            strays: vec![None; num_cameras],
+            stray_batches: 0,
+            restarts: 0,
         }
+    }
+
+    /// How many times the frame ids restarted (re-anchors) so far.
+    pub fn restarts(&self) -> u64 {
+        self.restarts
+    }
+
+    /// Sets the frame-id window (at least 1; see the module docs).
+    pub fn with_window(mut self, window: u64) -> Self {
+        self.window = window.max(1);
+        self
+    }
+
+    /// The frame-id window.
+    pub fn window(&self) -> u64 {
+        self.window
+    }
+
+    /// Where `frame_id` lies relative to the current frame ids: `None` when it is accepted
+    /// (pending or new), otherwise why not.
+    fn classify(&self, frame_id: u64) -> Option<Rejection> {
+        let w = self.window;
+        match (self.last_emitted, self.pending.keys().next()) {
+            (Some(last), _) if frame_id <= last => (last - frame_id > w)
+                .then_some(Rejection::OutOfRange)
+                .or(Some(Rejection::Late)),
+            (Some(last), _) => (frame_id - last > w).then_some(Rejection::OutOfRange),
+            (None, Some(&oldest)) => {
+                (frame_id.abs_diff(oldest) > w).then_some(Rejection::OutOfRange)
+            }
+            (None, None) => None,
+        }
+    }
+
+    /// Records an out-of-range batch; true when the cameras' out-of-range batches now agree
+    /// enough to re-anchor on `frame_id` (see the module docs).
+    fn record_stray(&mut self, camera: usize, frame_id: u64) -> bool {
+        self.strays[camera] = Some(frame_id);
+        self.stray_batches += 1;
+        let agree = self
+            .strays
+            .iter()
+            .flatten()
+            .filter(|&&s| s.abs_diff(frame_id) <= self.window)
+            .count();
+        agree > self.num_cameras / 2 && self.stray_batches >= 2
+    }
+
+    /// Emits every pending frame and forgets the frame-id range (a restart of the ids).
+    fn reanchor(&mut self) -> Vec<Emitted> {
+        let mut out = Vec::with_capacity(self.pending.len());
+        while !self.pending.is_empty() {
+            out.push(self.pop_first(EmitReason::Restart));
+        }
+        self.last_emitted = None;
+        self.restarts += 1;
+        out
     }
 
     /// Number of frames waiting.
     pub fn pending_frames(&self) -> usize {
         self.pending.len()
+    }
+
+    /// The pending frame `frame_id`, if it is waiting.
+    pub fn pending_frame(&self, frame_id: u64) -> Option<&Frame> {
+        self.pending.get(&frame_id).map(|p| &p.frame)
     }
 
     /// The highest emitted frame id so far.
@@ -109,8 +203,16 @@ impl Synchronizer {
         now: Instant,
     ) -> Result<Vec<Emitted>, Rejection> {
         assert!(camera < self.num_cameras, "camera index out of range");
-        if self.last_emitted.is_some_and(|last| frame_id <= last) {
-            return Err(Rejection::Late);
+        let mut out = Vec::new();
+        match self.classify(frame_id) {
+            None => {}
+            Some(Rejection::OutOfRange) => {
+                if !self.record_stray(camera, frame_id) {
+                    return Err(Rejection::OutOfRange);
+                }
+                out = self.reanchor();
+            }
+            Some(r) => return Err(r),
         }
         let n = self.num_cameras;
         let entry = self.pending.entry(frame_id).or_insert_with(|| Pending {
@@ -123,7 +225,10 @@ impl Synchronizer {
         }
         entry.frame.views[camera] = Some(detections);
         entry.reported += 1;
-        Ok(self.poll(now))
+        self.strays.iter_mut().for_each(|s| *s = None);
+        self.stray_batches = 0;
+        out.extend(self.poll(now));
+        Ok(out)
     }
 
     /// Emits, in frame-id order, every frame that may leave at time `now`.
@@ -280,6 +385,71 @@ mod tests {
     }
 
     #[test]
+    fn huge_frame_id_is_out_of_range_and_changes_nothing() {
+        let t0 = Instant::now();
+        let mut s = Synchronizer::new(3, T, 16).with_window(1000);
+        for c in 0..3 {
+            s.push(c, 10, det(), t0).unwrap();
+        }
+        assert_eq!(s.last_emitted(), Some(10));
+        for id in [u64::MAX, 1_000_000_000, 1011] {
+            assert_eq!(s.push(0, id, det(), t0), Err(Rejection::OutOfRange));
+        }
+        assert_eq!(s.pending_frames(), 0);
+        // The window edge itself is in range, and normal frames go on.
+        assert!(s.push(1, 1010, det(), t0).is_ok());
+        let out = s.push(0, 11, det(), t0).unwrap();
+        assert!(out.is_empty());
+        assert_eq!(s.pending_frames(), 2);
+    }
+
+    #[test]
+    fn window_applies_before_anything_was_emitted() {
+        let t0 = Instant::now();
+        let mut s = Synchronizer::new(2, T, 16).with_window(100);
+        s.push(0, 500, det(), t0).unwrap();
+        assert!(s.push(1, 450, det(), t0).is_ok(), "slightly older is fine");
+        assert_eq!(s.push(1, u64::MAX, det(), t0), Err(Rejection::OutOfRange));
+        assert_eq!(s.push(0, 0, det(), t0), Err(Rejection::OutOfRange));
+    }
+
+    #[test]
+    fn majority_of_cameras_restarting_their_ids_reanchors() {
+        let t0 = Instant::now();
+        let mut s = Synchronizer::new(3, T, 16).with_window(1000);
+        for c in 0..3 {
+            s.push(c, 50_000, det(), t0).unwrap();
+        }
+        s.push(2, 50_001, det(), t0).unwrap();
+        // Camera 0 restarts at 0: one camera is not a majority.
+        assert_eq!(s.push(0, 0, det(), t0), Err(Rejection::OutOfRange));
+        // Camera 1 follows: two of three agree; the pending frame leaves, frame 1 is accepted.
+        let out = s.push(1, 1, det(), t0).unwrap();
+        assert_eq!(ids(&out), vec![50_001]);
+        assert_eq!(out[0].reason, EmitReason::Restart);
+        assert_eq!(s.last_emitted(), None);
+        assert!(s.push(0, 1, det(), t0).is_ok());
+        // Camera 2, still on the old ids, is now out of range on its own.
+        assert_eq!(s.push(2, 50_002, det(), t0), Err(Rejection::OutOfRange));
+        let out = s.push(2, 1, det(), t0).unwrap();
+        assert_eq!(ids(&out), vec![1]);
+        assert!(out[0].complete());
+    }
+
+    #[test]
+    fn one_camera_scene_needs_two_out_of_range_batches_to_restart() {
+        let t0 = Instant::now();
+        let mut s = Synchronizer::new(1, T, 16).with_window(10);
+        s.push(0, 100, det(), t0).unwrap();
+        assert_eq!(s.push(0, u64::MAX, det(), t0), Err(Rejection::OutOfRange));
+        // An accepted batch in between forgets the stray.
+        s.push(0, 101, det(), t0).unwrap();
+        assert_eq!(s.push(0, 0, det(), t0), Err(Rejection::OutOfRange));
+        assert_eq!(ids(&s.push(0, 1, det(), t0).unwrap()), vec![1]);
+        assert_eq!(s.last_emitted(), Some(1));
+    }
+
+    #[test]
     fn flush_emits_everything_in_order() {
         let t0 = Instant::now();
         let mut s = Synchronizer::new(3, T, 16);
@@ -322,6 +492,7 @@ mod tests {
                     }
                     Err(Rejection::Late) => prop_assert!(was_emitted),
                     Err(Rejection::Duplicate) => prop_assert!(accepted.contains(&(cam, frame))),
+                    Err(Rejection::OutOfRange) => prop_assert!(false, "ids stay within the window"),
                 }
                 prop_assert!(s.pending_frames() <= max_pending);
             }
@@ -335,6 +506,52 @@ mod tests {
                         prop_assert!(seen.insert((c, e.frame.frame_id)));
                     }
                 }
+            }
+            prop_assert_eq!(seen, accepted);
+        }
+
+        /// With a small window and restarts: accepted batches still appear in exactly one
+        /// emitted frame, pending frames stay bounded, and between two re-anchors frames leave
+        /// in strictly increasing order.
+        #[test]
+        fn window_and_restarts_lose_nothing(
+            ops in proptest::collection::vec((0usize..3, 0u64..60, 0u64..300, any::<bool>()), 0..120),
+            window in 1u64..20,
+        ) {
+            let t0 = Instant::now();
+            let mut s = Synchronizer::new(3, T, 4).with_window(window);
+            // Emission order per epoch (the number of re-anchors before the frame's batches).
+            let mut order: BTreeMap<u64, Vec<u64>> = BTreeMap::new();
+            let mut accepted = std::collections::HashSet::new();
+            let mut seen = std::collections::HashSet::new();
+            let mut clock = 0u64;
+            let mut take = |out: Vec<Emitted>, epoch: u64| {
+                for e in out {
+                    let epoch = if e.reason == EmitReason::Restart { epoch - 1 } else { epoch };
+                    order.entry(epoch).or_default().push(e.frame.frame_id);
+                    for (c, v) in e.frame.views.iter().enumerate() {
+                        if v.is_some() {
+                            assert!(seen.insert((c, e.frame.frame_id, epoch)));
+                        }
+                    }
+                }
+            };
+            for (cam, frame, dt, poll) in ops {
+                clock += dt;
+                let now = t0 + Duration::from_millis(clock);
+                if poll {
+                    take(s.poll(now), s.restarts());
+                    continue;
+                }
+                if let Ok(out) = s.push(cam, frame, vec![], now) {
+                    accepted.insert((cam, frame, s.restarts()));
+                    take(out, s.restarts());
+                }
+                prop_assert!(s.pending_frames() <= 4);
+            }
+            take(s.flush(), s.restarts());
+            for ids in order.values() {
+                prop_assert!(ids.windows(2).all(|w| w[0] < w[1]), "{:?}", order);
             }
             prop_assert_eq!(seen, accepted);
         }

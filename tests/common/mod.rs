@@ -199,14 +199,30 @@ pub fn det(x1: f32, y1: f32, x2: f32, y2: f32) -> pb::Detection {
     }
 }
 
-/// `n` deterministic, valid detections that depend on camera and frame.
+/// `n` deterministic, valid detections that depend on camera and frame, inside the camera's
+/// image (boxes wrap around it, so any `n` fits).
 pub fn dets(camera: usize, frame: u64, n: usize) -> Vec<pb::Detection> {
+    let cam = &cameras()[camera];
+    let (w, h) = (cam.width as f32, cam.height as f32);
     (0..n)
         .map(|i| {
-            let x = 10.0 + 50.0 * i as f32 + 3.0 * camera as f32 + (frame % 7) as f32;
-            det(x, 20.0 + i as f32, x + 30.0, 200.0 + i as f32)
+            let x =
+                (10.0 + 50.0 * i as f32 + 3.0 * camera as f32 + (frame % 7) as f32) % (w - 40.0);
+            let y = (20.0 + i as f32 + 7.0 * (i as f32 * 50.0 / w).floor()) % (h - 200.0);
+            det(x, y, x + 30.0, y + 180.0)
         })
         .collect()
+}
+
+/// Peak resident memory of this process (VmHWM) in bytes.
+pub fn vm_hwm_bytes() -> u64 {
+    let status = std::fs::read_to_string("/proc/self/status").expect("/proc/self/status");
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+        .expect("VmHWM in /proc/self/status")
+        * 1024
 }
 
 /// A protobuf batch of scene `lab`.
