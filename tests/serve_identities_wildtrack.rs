@@ -30,7 +30,10 @@ fn data_dir() -> Option<PathBuf> {
     if dir.join("annotations_positions").is_dir() {
         Some(dir)
     } else {
-        eprintln!("note: WILDTRACK data not found at {}; skipping", dir.display());
+        eprintln!(
+            "note: WILDTRACK data not found at {}; skipping",
+            dir.display()
+        );
         None
     }
 }
@@ -51,7 +54,10 @@ async fn served_identities_score_like_eval_on_wildtrack_validation() {
         mode: Mode::Identities,
         ..encoder.metadata().association_config()
     };
-    assert!(cfg.identity.calibration.is_some(), "the committed model is calibrated");
+    assert!(
+        cfg.identity.calibration.is_some(),
+        "the committed model is calibrated"
+    );
     let (expected, _) = evaluate(&mut encoder, &rec, &cfg).unwrap();
 
     let spec = ModelSpec::parse(&format!("wildtrack={}", model.display())).unwrap();
@@ -125,7 +131,11 @@ async fn served_identities_score_like_eval_on_wildtrack_validation() {
             .iter()
             .map(|i| ServedIdentity {
                 confidence: i.confidence,
-                members: i.members.iter().map(|m| (m.camera_index, m.index)).collect(),
+                members: i
+                    .members
+                    .iter()
+                    .map(|m| (m.camera_index, m.index))
+                    .collect(),
             })
             .collect();
         let truth = frame_ids(&rec.scene, frame).unwrap();
@@ -133,7 +143,14 @@ async fn served_identities_score_like_eval_on_wildtrack_validation() {
     }
     let got = compute_metrics(&records);
     let counts = |m: &crossview::eval::Metrics| {
-        (m.pairs, m.kept, m.correct, m.common, m.union, m.true_negatives)
+        (
+            m.pairs,
+            m.kept,
+            m.correct,
+            m.common,
+            m.union,
+            m.true_negatives,
+        )
     };
     assert_eq!(counts(&got), counts(&expected));
     assert_eq!((got.acc, got.ipaa_100), (expected.acc, expected.ipaa_100));

@@ -2,7 +2,7 @@
 //! reported views, and build global identities.
 use ndarray::Array2;
 
-use crate::core::identity::{Identity, IdentityConfig, build_identities, pairs_from_identities};
+use crate::core::identity::{Identity, IdentityConfig, build_identities, identity_matches};
 use crate::core::matching::{
     PairMatching, all_pairs_distances, euclidean_distances, match_from_distances,
 };
@@ -186,7 +186,11 @@ pub fn associate_frame(
                 p.matching.matches = cfg.identity.kept(&p.matching);
             }
         }
-        Mode::Identities => pairs = pairs_from_identities(&identities, &pairs),
+        Mode::Identities => {
+            for p in &mut pairs {
+                p.matching.matches = identity_matches(&identities, p);
+            }
+        }
     }
     FrameAssociation {
         frame_id: frame.frame_id,

@@ -37,7 +37,6 @@
 //! `mean conf of the Hungarian pairs inside it (1 for a single box)
 //!  × ∏ over the other cameras (1 − the best conf of a member's Hungarian partner there)`.
 //! A single box that no camera pair assigned, while other cameras have boxes, gets 0.5.
-use std::cmp::Reverse;
 use std::collections::BinaryHeap;
 use std::sync::Arc;
 
@@ -167,13 +166,35 @@ impl Evidence {
 }
 
 /// A merge candidate: clusters `lo < hi` at total weight `w`, valid while both clusters still
-/// have the versions they had when it was pushed. Ordered by weight, then lowest `(lo, hi)`.
+/// have the (16-bit, wrapping) versions they had when it was pushed. Packed into one integer
+/// whose order is the merge order — weight first, then the lowest `(lo, hi)` — so the heap's
+/// comparisons and moves are cheap: `key(32) | !lo(32) | !hi(32) | version lo(16) | version hi(16)`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
-struct Candidate {
-    key: u32,
-    lo: Reverse<u32>,
-    hi: Reverse<u32>,
-    versions: (u32, u32),
+struct Candidate(u128);
+
+impl Candidate {
+    fn new(w: f32, lo: usize, hi: usize, versions: (u32, u32)) -> Self {
+        let (lo, hi) = (!(lo as u32) as u128, !(hi as u32) as u128);
+        Candidate(
+            (order_key(w) as u128) << 96
+                | lo << 64
+                | hi << 32
+                | ((versions.0 & 0xffff) as u128) << 16
+                | (versions.1 & 0xffff) as u128,
+        )
+    }
+
+    fn lo(self) -> usize {
+        !((self.0 >> 64) as u32) as usize
+    }
+
+    fn hi(self) -> usize {
+        !((self.0 >> 32) as u32) as usize
+    }
+
+    fn versions(self) -> (u32, u32) {
+        (((self.0 >> 16) & 0xffff) as u32, (self.0 & 0xffff) as u32)
+    }
 }
 
 /// `f32` bits mapped to an unsigned key with the same order as `f32::total_cmp`.
@@ -202,6 +223,8 @@ struct Clustering<'a> {
     next: Vec<usize>,
     last: Vec<usize>,
     heap: BinaryHeap<Candidate>,
+    /// Scratch list of the clusters already offered to a merged cluster.
+    seen: Vec<usize>,
 }
 
 impl Clustering<'_> {
@@ -228,20 +251,14 @@ impl Clustering<'_> {
         w
     }
 
-    fn push(&mut self, r: usize, s: usize) {
+    /// The candidate for merging `r` and `s`, when they may merge.
+    fn candidate(&self, r: usize, s: usize) -> Option<Candidate> {
         if !self.disjoint(r, s) {
-            return;
+            return None;
         }
         let w = self.weight(r, s);
-        if w >= 0.0 {
-            let (lo, hi) = (r.min(s), r.max(s));
-            self.heap.push(Candidate {
-                key: order_key(w),
-                lo: Reverse(lo as u32),
-                hi: Reverse(hi as u32),
-                versions: (self.version[lo], self.version[hi]),
-            });
-        }
+        let (lo, hi) = (r.min(s), r.max(s));
+        (w >= 0.0).then(|| Candidate::new(w, lo, hi, (self.version[lo], self.version[hi])))
     }
 
     fn merge(&mut self, r: usize, s: usize) {
@@ -260,9 +277,10 @@ impl Clustering<'_> {
         self.version[s] += 1;
         // Fresh candidates for every cluster a member of the merged one has a partner in.
         let c = self.ev.cameras;
-        let mut seen: Vec<usize> = Vec::with_capacity(16);
-        let members: Vec<usize> = self.members(r).collect();
-        for u in members {
+        let mut seen = std::mem::take(&mut self.seen);
+        seen.clear();
+        let mut u = r;
+        while u != END {
             for &p in &self.ev.partner[u * c..(u + 1) * c] {
                 if p == NONE {
                     continue;
@@ -270,10 +288,14 @@ impl Clustering<'_> {
                 let k = self.root[p as usize];
                 if k != r && !seen.contains(&k) {
                     seen.push(k);
-                    self.push(r, k);
+                    if let Some(cand) = self.candidate(r, k) {
+                        self.heap.push(cand);
+                    }
                 }
             }
+            u = self.next[u];
         }
+        self.seen = seen;
     }
 }
 
@@ -402,19 +424,24 @@ pub fn build_identities(
         next: vec![END; n],
         last: (0..n).collect(),
         heap: BinaryHeap::new(),
+        seen: Vec::with_capacity(2 * cameras),
     };
+    let mut initial = Vec::with_capacity(n * cameras / 2);
     for u in 0..n {
         for c in 0..cameras {
             let v = ev.partner[u * cameras + c];
             if v != NONE && u < v as usize {
-                cl.push(u, v as usize);
+                initial.extend(cl.candidate(u, v as usize));
             }
         }
     }
+    cl.heap = BinaryHeap::from(initial);
     while let Some(c) = cl.heap.pop() {
-        let (lo, hi) = (c.lo.0 as usize, c.hi.0 as usize);
-        if cl.root[lo] == lo && cl.root[hi] == hi && (cl.version[lo], cl.version[hi]) == c.versions
-        {
+        let (lo, hi) = (c.lo(), c.hi());
+        let now = (cl.version[lo] & 0xffff, cl.version[hi] & 0xffff);
+        // (The disjointness check only matters if a version wrapped, with over 65,535
+        // cameras: a stale entry must never merge two boxes of one camera.)
+        if cl.root[lo] == lo && cl.root[hi] == hi && now == c.versions() && cl.disjoint(lo, hi) {
             cl.merge(lo, hi);
         }
     }
@@ -505,25 +532,6 @@ fn singletons(view_sizes: &[usize]) -> Vec<Identity> {
         .collect()
 }
 
-/// Pairwise matches implied by identities: for every camera pair of `pairs`, the boxes that
-/// share an identity, scored with that pair's `S`. Returns `pairs` with their matches
-/// replaced (scores and assignment unchanged, matches sorted by `a`), so evaluation can score
-/// identities exactly like pairwise matching.
-pub fn pairs_from_identities(identities: &[Identity], pairs: &[ViewPair]) -> Vec<ViewPair> {
-    pairs
-        .iter()
-        .map(|p| ViewPair {
-            cam_a: p.cam_a,
-            cam_b: p.cam_b,
-            matching: PairMatching {
-                scores: p.matching.scores.clone(),
-                assignment: p.matching.assignment.clone(),
-                matches: identity_matches(identities, p),
-            },
-        })
-        .collect()
-}
-
 /// The matches of camera pair `p` implied by `identities`, sorted by `a`, scored with `S`.
 pub fn identity_matches(identities: &[Identity], p: &ViewPair) -> Vec<Match> {
     let s = &p.matching.scores;
@@ -577,6 +585,25 @@ mod tests {
                 matches,
             },
         }
+    }
+
+    /// Pairwise matches implied by identities: for every camera pair of `pairs`, the boxes that
+    /// share an identity, scored with that pair's `S`. Returns `pairs` with their matches
+    /// replaced (scores and assignment unchanged, matches sorted by `a`), so evaluation can score
+    /// identities exactly like pairwise matching.
+    fn pairs_from_identities(identities: &[Identity], pairs: &[ViewPair]) -> Vec<ViewPair> {
+        pairs
+            .iter()
+            .map(|p| ViewPair {
+                cam_a: p.cam_a,
+                cam_b: p.cam_b,
+                matching: PairMatching {
+                    scores: p.matching.scores.clone(),
+                    assignment: p.matching.assignment.clone(),
+                    matches: identity_matches(identities, p),
+                },
+            })
+            .collect()
     }
 
     fn members(ids: &[Identity]) -> Vec<Vec<(usize, usize)>> {
@@ -661,7 +688,10 @@ mod tests {
             members(&ids),
             vec![vec![(0, 0), (1, 0), (2, 0)], vec![(1, 1)]]
         );
-        assert_eq!(ids[1].confidence, 0.5, "B1 has no Hungarian partner: a coin toss");
+        assert_eq!(
+            ids[1].confidence, 0.5,
+            "B1 has no Hungarian partner: a coin toss"
+        );
         // The full identity: mean pair confidence 0.9, nothing missing.
         assert!((ids[0].confidence - 0.9).abs() < 1e-6);
     }
