@@ -379,6 +379,17 @@ fn truncated_normal(rng: &mut impl Rng) -> f32 {
     }
 }
 
+/// The plain-Rust forward pass as an [`crate::model::Encoder`] (used where a model must be run
+/// without ONNX Runtime, e.g. calibrating right after training).
+impl crate::model::Encoder for EncoderWeights {
+    fn embed(&mut self, boxes: &[[f32; 4]], cameras: &[i64]) -> Result<Array2<f32>> {
+        self.forward(boxes, cameras)
+    }
+    fn dim(&self) -> usize {
+        self.width()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -443,16 +454,5 @@ mod tests {
         let mut bad = w.clone();
         bad.blocks[1].bias[3] = f32::INFINITY;
         assert!(bad.validate().is_err());
-    }
-}
-
-/// The plain-Rust forward pass as an [`crate::model::Encoder`] (used where a model must be run
-/// without ONNX Runtime, e.g. calibrating right after training).
-impl crate::model::Encoder for EncoderWeights {
-    fn embed(&mut self, boxes: &[[f32; 4]], cameras: &[i64]) -> Result<Array2<f32>> {
-        self.forward(boxes, cameras)
-    }
-    fn dim(&self) -> usize {
-        self.width()
     }
 }
