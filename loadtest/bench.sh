@@ -27,13 +27,28 @@ mkdir -p "$OUT"
 SCENE=$(head -1 "$OUT/rec.jsonl" | python3 -c 'import json,sys; print(json.load(sys.stdin)["scene"]["name"])')
 MODELS="$SCENE=$OUT/model.onnx,$SCENE-1=$OUT/model.onnx,$SCENE-2=$OUT/model.onnx"
 
-"$CROSSVIEW_BIN" serve --listen "127.0.0.1:$PORT" --model "$MODELS" >"$OUT/server.log" 2>&1 &
-SERVER=$!
-trap 'kill $SERVER 2>/dev/null || true; wait $SERVER 2>/dev/null || true' EXIT
+# Every run gets a fresh server: `--ids fresh` moves each run's frame ids far beyond the
+# previous run's (Unix time based), which a running server treats as a camera restart (its
+# first batches refused until most cameras agree, docs/serve.md "Frame ids") — real behaviour,
+# but not what a latency row should measure.
+SERVER=
+stop_server() {
+  if [[ -n $SERVER ]]; then kill "$SERVER" 2>/dev/null || true; wait "$SERVER" 2>/dev/null || true; fi
+  SERVER=
+}
+start_server() {
+  stop_server
+  "$CROSSVIEW_BIN" serve --listen "127.0.0.1:$PORT" --model "$MODELS" >>"$OUT/server.log" 2>&1 &
+  SERVER=$!
+}
+trap stop_server EXIT
 
-run() { # run NAME loadtest-args...
+run() { # run NAME loadtest-args...   (an argument @SERVER@ becomes the fresh server's pid)
   local name=$1; shift
-  "$LOADTEST_BIN" --target "$TARGET" --recording "$OUT/rec.jsonl" --wait-ready 30s --json "$@" \
+  start_server
+  local args=() a
+  for a in "$@"; do [[ $a == @SERVER@ ]] && a=$SERVER; args+=("$a"); done
+  "$LOADTEST_BIN" --target "$TARGET" --recording "$OUT/rec.jsonl" --wait-ready 30s --json "${args[@]}" \
     >"$OUT/$name.json" 2>"$OUT/$name.err" || true
   python3 - "$OUT/$name.json" "$name" <<'PY'
 import json, sys
@@ -61,6 +76,6 @@ for t in grpc http; do
 done
 if [[ $SOAK_DURATION != 0 ]]; then
   run "soak" --transport grpc --soak --rate 10 --duration "$SOAK_DURATION" \
-    --scene-names "$SCENE,$SCENE-1,$SCENE-2" --server-pid "$SERVER"
+    --scene-names "$SCENE,$SCENE-1,$SCENE-2" --server-pid @SERVER@
   python3 -c 'import json,sys; r=json.load(open(sys.argv[1])); print("soak:", r["soak_counts"], r["server_rss"] and {k: r["server_rss"][k] for k in ("first_kib","max_kib","last_kib","samples")}, r["server_comparison"])' "$OUT/soak.json"
 fi

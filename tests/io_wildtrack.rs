@@ -1,6 +1,8 @@
 //! WILDTRACK importers and the chronological split on the real data in
 //! `<CARGO_MANIFEST_DIR>/../shared/data/wildtrack` or `$CROSSVIEW_WILDTRACK_DIR` (skipped, with a note, when it is absent),
 //! plus importer error handling on small synthetic files.
+mod common;
+
 use std::collections::HashSet;
 use std::path::PathBuf;
 use std::process::Command;
@@ -10,24 +12,6 @@ use crossview::io::wildtrack::{
     self, CAMERA_NAMES, import_detections, import_ground_truth, part_bounds,
 };
 use crossview::io::{Part, Recording, read_recording, split_frames};
-
-/// `$CROSSVIEW_WILDTRACK_DIR` if set, else `<CARGO_MANIFEST_DIR>/../shared/data/wildtrack`.
-fn data_dir() -> Option<PathBuf> {
-    let dir = std::env::var_os("CROSSVIEW_WILDTRACK_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| {
-            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/wildtrack")
-        });
-    if dir.join("annotations_positions").is_dir() {
-        Some(dir)
-    } else {
-        eprintln!(
-            "note: WILDTRACK data not found at {}; skipping",
-            dir.display()
-        );
-        None
-    }
-}
 
 fn assert_well_formed(rec: &Recording) {
     let names: Vec<&str> = rec.scene.cameras.iter().map(|c| c.name.as_str()).collect();
@@ -64,7 +48,7 @@ fn split_boundaries_on_the_wildtrack_sequence() {
 
 #[test]
 fn ground_truth_full_folder() {
-    let Some(dir) = data_dir() else { return };
+    let Some(dir) = common::wildtrack_dir() else { return };
     let imp = import_ground_truth(&dir.join("annotations_positions"), None, None).unwrap();
     let rec = &imp.recording;
     assert_well_formed(rec);
@@ -98,7 +82,7 @@ fn ground_truth_full_folder() {
 
 #[test]
 fn ground_truth_validation_split_and_bounds() {
-    let Some(dir) = data_dir() else { return };
+    let Some(dir) = common::wildtrack_dir() else { return };
     let gt = dir.join("annotations_positions");
     let (lo, hi) = part_bounds(Part::Val);
     let val = import_ground_truth(&gt, Some(lo), Some(hi))
@@ -128,7 +112,7 @@ fn ground_truth_validation_split_and_bounds() {
 
 #[test]
 fn detections_train_file() {
-    let Some(dir) = data_dir() else { return };
+    let Some(dir) = common::wildtrack_dir() else { return };
     let imp = import_detections(&dir.join("detections_train.json"), 5).unwrap();
     let rec = &imp.recording;
     assert_well_formed(rec);
@@ -149,7 +133,7 @@ fn detections_train_file() {
 
 #[test]
 fn cli_import_and_split_round_trip() {
-    let Some(dir) = data_dir() else { return };
+    let Some(dir) = common::wildtrack_dir() else { return };
     let bin = env!("CARGO_BIN_EXE_crossview");
     let tmp = tempfile::tempdir().unwrap();
     let all = tmp.path().join("gt.jsonl");

@@ -21,26 +21,11 @@ use futures::StreamExt;
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
 
-fn data_dir() -> Option<PathBuf> {
-    let dir = std::env::var_os("CROSSVIEW_WILDTRACK_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| {
-            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/wildtrack")
-        });
-    if dir.join("annotations_positions").is_dir() {
-        Some(dir)
-    } else {
-        eprintln!(
-            "note: WILDTRACK data not found at {}; skipping",
-            dir.display()
-        );
-        None
-    }
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn served_identities_score_like_eval_on_wildtrack_validation() {
-    let Some(dir) = data_dir() else { return };
+    let Some(dir) = common::wildtrack_dir() else {
+        return;
+    };
     let model = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/wildtrack.onnx");
     let (lo, hi) = part_bounds(Part::Val);
     let rec = import_ground_truth(&dir.join("annotations_positions"), Some(lo), Some(hi))

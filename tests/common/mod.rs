@@ -263,3 +263,23 @@ pub fn check_identities(r: &pb::FrameResult, boxes_per_camera: &[usize]) {
         }
     }
 }
+
+/// The WILDTRACK data: `$CROSSVIEW_WILDTRACK_DIR` if set, else
+/// `<CARGO_MANIFEST_DIR>/../shared/data/wildtrack`; `None` (with a note) when it is absent, so
+/// the tests that need it skip.
+pub fn wildtrack_dir() -> Option<PathBuf> {
+    let dir = std::env::var_os("CROSSVIEW_WILDTRACK_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| {
+            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/wildtrack")
+        });
+    if dir.join("annotations_positions").is_dir() {
+        Some(dir)
+    } else {
+        eprintln!(
+            "note: WILDTRACK data not found at {}; skipping",
+            dir.display()
+        );
+        None
+    }
+}
