@@ -48,7 +48,9 @@ fn split_boundaries_on_the_wildtrack_sequence() {
 
 #[test]
 fn ground_truth_full_folder() {
-    let Some(dir) = common::wildtrack_dir() else { return };
+    let Some(dir) = common::wildtrack_dir() else {
+        return;
+    };
     let imp = import_ground_truth(&dir.join("annotations_positions"), None, None).unwrap();
     let rec = &imp.recording;
     assert_well_formed(rec);
@@ -82,7 +84,9 @@ fn ground_truth_full_folder() {
 
 #[test]
 fn ground_truth_validation_split_and_bounds() {
-    let Some(dir) = common::wildtrack_dir() else { return };
+    let Some(dir) = common::wildtrack_dir() else {
+        return;
+    };
     let gt = dir.join("annotations_positions");
     let (lo, hi) = part_bounds(Part::Val);
     let val = import_ground_truth(&gt, Some(lo), Some(hi))
@@ -112,7 +116,9 @@ fn ground_truth_validation_split_and_bounds() {
 
 #[test]
 fn detections_train_file() {
-    let Some(dir) = common::wildtrack_dir() else { return };
+    let Some(dir) = common::wildtrack_dir() else {
+        return;
+    };
     let imp = import_detections(&dir.join("detections_train.json"), 5).unwrap();
     let rec = &imp.recording;
     assert_well_formed(rec);
@@ -133,7 +139,9 @@ fn detections_train_file() {
 
 #[test]
 fn cli_import_and_split_round_trip() {
-    let Some(dir) = common::wildtrack_dir() else { return };
+    let Some(dir) = common::wildtrack_dir() else {
+        return;
+    };
     let bin = env!("CARGO_BIN_EXE_crossview");
     let tmp = tempfile::tempdir().unwrap();
     let all = tmp.path().join("gt.jsonl");
