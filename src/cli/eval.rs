@@ -85,7 +85,7 @@ pub struct AssociateArgs {
 /// Checks that the recording's cameras are the model's, in the same order (the encoder's
 /// camera embedding is indexed by position). Size differences only warn: boxes are
 /// normalised by the recording's sizes.
-fn check_scene(scene: &SceneSpec, meta: &ModelMetadata) -> anyhow::Result<()> {
+pub(crate) fn check_scene(scene: &SceneSpec, meta: &ModelMetadata) -> anyhow::Result<()> {
     let names = |c: &[CameraSpec]| c.iter().map(|c| c.name.clone()).collect::<Vec<_>>();
     if names(&scene.cameras) != names(&meta.cameras) {
         bail!(
@@ -195,18 +195,14 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     }
     // Rows: SPEC §3 pairwise (what the paper's metrics mean), pairwise on the calibrated
     // confidence when the model has one, and the identities the service returns.
-    let mut settings = vec![(Mode::Pairwise, base.threshold)];
-    if base.identity.calibration.is_some() {
-        settings.push((Mode::Calibrated, base.identity.threshold));
-    }
-    settings.push((Mode::Identities, base.identity.threshold));
+    let modes: &[Mode] = if base.identity.calibration.is_some() {
+        &[Mode::Pairwise, Mode::Calibrated, Mode::Identities]
+    } else {
+        &[Mode::Pairwise, Mode::Identities]
+    };
+    let mut settings: Vec<(Mode, f32)> = modes.iter().map(|&m| (m, base.threshold_of(m))).collect();
     for &t in &args.sweep {
         let t = check_threshold(t)?;
-        let modes: &[Mode] = if base.identity.calibration.is_some() {
-            &[Mode::Pairwise, Mode::Calibrated, Mode::Identities]
-        } else {
-            &[Mode::Pairwise, Mode::Identities]
-        };
         for &m in modes {
             if !settings.contains(&(m, t)) {
                 settings.push((m, t));

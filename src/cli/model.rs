@@ -111,15 +111,7 @@ fn calibrate(a: CalibrateArgs) -> anyhow::Result<()> {
     }
     let (weights, mut meta) = export::read_weights(&a.model)?;
     let recording = crate::io::recording::read_recording(&a.data)?;
-    let names =
-        |c: &[crate::core::CameraSpec]| c.iter().map(|c| c.name.clone()).collect::<Vec<_>>();
-    if names(&recording.scene.cameras) != names(&meta.cameras) {
-        anyhow::bail!(
-            "the recording's cameras {:?} differ from the model's {:?}",
-            names(&recording.scene.cameras),
-            names(&meta.cameras)
-        );
-    }
+    super::eval::check_scene(&recording.scene, &meta)?;
     let mut set = crate::train::TrainingSet::from_recording(&recording, 1)?;
     // The boxes the model was trained on: its own training filter, when it records one.
     let filter: BoxFilter = meta

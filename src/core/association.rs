@@ -84,6 +84,29 @@ pub struct AssociationConfig {
     pub identity: IdentityConfig,
 }
 
+impl AssociationConfig {
+    /// The threshold `mode`'s matches are kept at: SPEC §3's on `S` for [`Mode::Pairwise`],
+    /// the identity threshold for the others.
+    pub fn threshold_of(&self, mode: Mode) -> f32 {
+        match mode {
+            Mode::Pairwise => self.threshold,
+            Mode::Calibrated | Mode::Identities => self.identity.threshold,
+        }
+    }
+
+    /// This configuration reporting `mode`'s matches, kept at `threshold` (see
+    /// [`Self::threshold_of`]).
+    pub fn with_mode(&self, mode: Mode, threshold: f32) -> AssociationConfig {
+        let mut cfg = self.clone();
+        cfg.mode = mode;
+        match mode {
+            Mode::Pairwise => cfg.threshold = threshold,
+            Mode::Calibrated | Mode::Identities => cfg.identity.threshold = threshold,
+        }
+        cfg
+    }
+}
+
 impl Default for AssociationConfig {
     /// The WILDTRACK reference setting: threshold 0.4, alpha 0.1, pairwise, uncalibrated
     /// identities at the same threshold.

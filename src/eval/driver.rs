@@ -124,15 +124,7 @@ pub fn evaluate_settings(
     }
     let configs: Vec<AssociationConfig> = settings
         .iter()
-        .map(|&(mode, t)| {
-            let mut cfg = base.clone();
-            cfg.mode = mode;
-            match mode {
-                Mode::Pairwise => cfg.threshold = t,
-                Mode::Calibrated | Mode::Identities => cfg.identity.threshold = t,
-            }
-            cfg
-        })
+        .map(|&(mode, t)| base.with_mode(mode, t))
         .collect();
     let scene = &recording.scene;
     let mut records: Vec<Vec<PairRecord>> = vec![Vec::new(); settings.len()];
@@ -172,11 +164,8 @@ pub fn evaluate(
     recording: &Recording,
     cfg: &AssociationConfig,
 ) -> Result<(Metrics, Vec<PairRecord>)> {
-    let t = match cfg.mode {
-        Mode::Pairwise => cfg.threshold,
-        Mode::Calibrated | Mode::Identities => cfg.identity.threshold,
-    };
-    let mut runs = evaluate_settings(encoder, recording, cfg, &[(cfg.mode, t)])?;
+    let setting = (cfg.mode, cfg.threshold_of(cfg.mode));
+    let mut runs = evaluate_settings(encoder, recording, cfg, &[setting])?;
     let run = runs
         .pop()
         .ok_or_else(|| Error::invalid("settings", "no result"))?;

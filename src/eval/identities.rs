@@ -1,6 +1,8 @@
 //! **[ours]** Scores of whole identities against ground truth, beside the SPEC §5 pair
 //! metrics: how many frames come out exactly right, and how often an identity is right at
 //! each level of its confidence (the confidence should mean what it says).
+use std::collections::HashMap;
+
 use serde::{Deserialize, Serialize};
 
 use crate::core::identity::Identity;
@@ -33,12 +35,11 @@ impl IdentityStats {
     /// box `i` of camera `c`; `None` for cameras that did not report).
     pub fn add_frame(&mut self, identities: &[Identity], ids: &[Option<Vec<u64>>]) {
         let id_of = |c: usize, i: usize| ids.get(c)?.as_ref()?.get(i).copied();
-        let boxes_of = |gt: u64| -> usize {
-            ids.iter()
-                .flatten()
-                .map(|v| v.iter().filter(|&&x| x == gt).count())
-                .sum()
-        };
+        let mut boxes: HashMap<u64, usize> = HashMap::new();
+        for &gt in ids.iter().flatten().flatten() {
+            *boxes.entry(gt).or_default() += 1;
+        }
+        let boxes_of = |gt: u64| boxes.get(&gt).copied().unwrap_or(0);
         let mut exact = true;
         for ident in identities {
             let first = ident.members.first().and_then(|&(c, i)| id_of(c, i));
