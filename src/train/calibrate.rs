@@ -3,11 +3,12 @@
 //! person) of an unlabelled recording, turned into `P(same person | distance)` by
 //! [`Calibration::fit`]. The trainer runs it on its training set after training;
 //! `crossview model calibrate` runs it on any recording for an existing model file.
-use ndarray::Array2;
+use ndarray::{Array2, ArrayView2};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::Result;
+use crate::core::FrameEmbeddings;
 use crate::core::calibration::Calibration;
 use crate::core::matching::{euclidean_distances, hungarian};
 use crate::model::Encoder;
@@ -16,8 +17,8 @@ use crate::train::data::TrainingSet;
 /// Frame offsets of the time-shifted image, as the training negatives (SPEC §4).
 const SHIFT: std::ops::Range<usize> = 5..20;
 
-/// Embeds every image of `set` (one encoder call per frame).
-fn embed_all(encoder: &mut dyn Encoder, set: &TrainingSet) -> Result<Vec<Vec<Array2<f32>>>> {
+/// Embeds every image of `set` (one encoder call per frame), each frame's rows split by camera.
+fn embed_all(encoder: &mut dyn Encoder, set: &TrainingSet) -> Result<Vec<FrameEmbeddings>> {
     set.images
         .iter()
         .map(|row| {
@@ -32,26 +33,18 @@ fn embed_all(encoder: &mut dyn Encoder, set: &TrainingSet) -> Result<Vec<Vec<Arr
             } else {
                 encoder.embed(&boxes, &cams)?
             };
-            let mut start = 0;
-            Ok(row
-                .iter()
-                .map(|img| {
-                    let end = start + img.boxes.len();
-                    let v = all.slice(ndarray::s![start..end, ..]).to_owned();
-                    start = end;
-                    v
-                })
-                .collect())
+            let rows: Vec<Option<usize>> = row.iter().map(|i| Some(i.boxes.len())).collect();
+            FrameEmbeddings::new(all, &rows)
         })
         .collect()
 }
 
 /// Raw geometric distances of the Hungarian pairs of two images.
-fn assigned_distances(a: &Array2<f32>, b: &Array2<f32>, out: &mut Vec<f32>) {
+fn assigned_distances(a: ArrayView2<f32>, b: ArrayView2<f32>, out: &mut Vec<f32>) {
     if a.nrows() == 0 || b.nrows() == 0 {
         return;
     }
-    let d = euclidean_distances(a.view(), b.view());
+    let d = euclidean_distances(a, b);
     out.extend(hungarian(d.view()).into_iter().map(|(i, j)| d[(i, j)]));
 }
 
@@ -67,13 +60,14 @@ pub fn calibration_samples(
     let (frames, cams) = (set.num_frames(), set.num_cameras());
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let (mut sync, mut shifted) = (Vec::new(), Vec::new());
+    let view = |t: usize, c: usize| emb[t].view(c).expect("every camera of a frame has rows");
     for t in 0..frames {
         for i in 0..cams {
             for j in 0..cams {
-                if i == j || emb[t][i].nrows() == 0 || emb[t][j].nrows() == 0 {
+                if i == j || view(t, i).nrows() == 0 || view(t, j).nrows() == 0 {
                     continue;
                 }
-                assigned_distances(&emb[t][i], &emb[t][j], &mut sync);
+                assigned_distances(view(t, i), view(t, j), &mut sync);
                 let d = rng.random_range(SHIFT);
                 let forward = rng.random::<bool>();
                 let t2 = match (forward, t + d < frames, t >= d) {
@@ -82,7 +76,7 @@ pub fn calibration_samples(
                     _ => None,
                 };
                 if let Some(t2) = t2 {
-                    assigned_distances(&emb[t][i], &emb[t2][j], &mut shifted);
+                    assigned_distances(view(t, i), view(t2, j), &mut shifted);
                 }
             }
         }
