@@ -137,10 +137,16 @@ fn scene_to_pb(s: api::SceneDescription) -> pb::Scene {
     }
 }
 
-/// Pushes one protobuf batch and turns the outcome into its acknowledgement.
-fn push_one(svc: &Service, b: pb::Batch) -> pb::BatchAck {
-    let (scene, camera, frame_id) = (echo(&b.scene), echo(&b.camera), b.frame_id);
-    let outcome = batch_from_pb(b)
+/// Pushes one protobuf batch — or a message that did not decode as one (see [`super::push`])
+/// — and turns the outcome into its acknowledgement. An undecodable message's ack has no
+/// scene, camera or frame id: acks come in message order.
+fn push_one(svc: &Service, b: crate::Result<pb::Batch>) -> pb::BatchAck {
+    let (scene, camera, frame_id) = match &b {
+        Ok(b) => (echo(&b.scene), echo(&b.camera), b.frame_id),
+        Err(_) => (String::new(), String::new(), 0),
+    };
+    let outcome = b
+        .and_then(batch_from_pb)
         .inspect_err(|e| svc.metrics().error(e.kind()))
         .and_then(|(scene, batch)| svc.push(&scene, batch));
     let (code, message, kind) = match outcome {
@@ -161,7 +167,22 @@ fn push_one(svc: &Service, b: pb::Batch) -> pb::BatchAck {
     }
 }
 
-type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
+pub(crate) type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
+
+/// The acknowledgements of a `Push` call: one per message, in order, until the client
+/// half-closes, the server shuts down or the transport ends the call (its status is the
+/// call's: `messages` yields it and ends).
+pub(crate) fn push_acks<S>(svc: Arc<Service>, messages: S) -> BoxStream<pb::BatchAck>
+where
+    S: Stream<Item = Result<crate::Result<pb::Batch>, Status>> + Send + 'static,
+{
+    let stop = svc.shutting_down();
+    Box::pin(
+        messages
+            .take_until(stop)
+            .map(move |m| m.map(|b| push_one(&svc, b))),
+    )
+}
 
 /// Forwards a `Stream` call's scene results to its response until the call is over: the client
 /// cancelled (the subscriber is dropped at once, not at the next frame), the scene's results
@@ -254,13 +275,11 @@ impl pb::association_server::Association for GrpcService {
         &self,
         request: Request<Streaming<pb::Batch>>,
     ) -> Result<Response<Self::PushStream>, Status> {
-        let svc = self.svc.clone();
-        let stop = svc.shutting_down();
-        let out = request
-            .into_inner()
-            .take_until(stop)
-            .map(move |m| m.map(|b| push_one(&svc, b)));
-        Ok(Response::new(Box::pin(out)))
+        // The server routes Push to `super::push::Routes`, which keeps the call open past a
+        // message that does not decode; this generated entry point (tonic's framing: such a
+        // message ends the call) serves only direct users of `AssociationServer`.
+        let messages = request.into_inner().map(|m| m.map(Ok));
+        Ok(Response::new(push_acks(self.svc.clone(), messages)))
     }
 
     type SubscribeStream = BoxStream<pb::FrameResult>;
@@ -337,7 +356,7 @@ impl pb::association_server::Association for GrpcService {
                                 half_closed_rx.clone(),
                                 linger,
                             ));
-                            push_one(&svc, b)
+                            push_one(&svc, Ok(b))
                         }
                         Err(e) => reject(&b, e),
                     },
@@ -351,7 +370,7 @@ impl pb::association_server::Association for GrpcService {
                             ),
                         ),
                     ),
-                    Some(_) => push_one(&svc, b),
+                    Some(_) => push_one(&svc, Ok(b)),
                 };
                 if ack.code == 0 {
                     last_accepted =

@@ -3,7 +3,8 @@
 //! Layout (one job per module): [`config`] settings; [`registry`] model loading; [`sync`] the
 //! pure frame synchronizer; [`scene`] a live scene (synchronizer + encoder worker thread +
 //! results broadcast); [`engine`] association of one frame; [`service`] the one domain API;
-//! [`grpc`] and [`http`] thin transports with the error mappings; [`auth`], [`tls`],
+//! [`grpc`] and [`http`] thin transports with the error mappings ([`push`]: the gRPC `Push`
+//! call's own request framing, so a bad message is refused alone); [`auth`], [`tls`],
 //! [`metrics`]; this module binds them into one listener with graceful shutdown.
 //!
 //! Tests and the CLI start it the same way: [`Server::load`] (or [`run`]) then
@@ -19,6 +20,7 @@ pub mod engine;
 pub mod grpc;
 pub mod http;
 pub mod metrics;
+pub mod push;
 pub mod registry;
 pub mod scene;
 pub mod service;
@@ -363,12 +365,13 @@ async fn build_router(svc: &Arc<Service>, config: &ServeConfig) -> Result<Router
         .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
         .build_v1()
         .map_err(|e| Error::Runtime(format!("gRPC reflection: {e}")))?;
-    let association = AssociationServer::new(grpc::GrpcService::new(
+    let generated = AssociationServer::new(grpc::GrpcService::new(
         svc.clone(),
         config.connections.subscriber_stall_timeout,
     ))
     .max_decoding_message_size(limit)
     .max_encoding_message_size(usize::MAX);
+    let association = push::Routes::new(generated, svc.clone(), limit);
     let mut router = Router::new();
     let body_timeout = config.connections.body_timeout;
     router = grpc_route(router, association, body_timeout);
