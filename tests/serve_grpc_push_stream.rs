@@ -1,16 +1,18 @@
-//! One bad message does not end a gRPC `Push` stream: after [good, bad, good, good] — bad being
-//! invalid UTF-8 in `camera`, a truncated field in a well-framed message, an 11-byte varint or
-//! a message over `--max-request-bytes` — the bad one gets an INVALID_ARGUMENT ack and the
-//! batches after it are accepted and delivered (their frame comes out complete). What the
-//! framing cannot get past (the request ending inside a message) ends the call with
-//! INVALID_ARGUMENT, never INTERNAL. The messages are framed by hand and sent over a real
-//! HTTP/2 gRPC channel, one chunk at a time, the call open throughout.
+//! One bad message does not end a gRPC `Push` or `Stream` call: after [good, bad, good, good] —
+//! bad being invalid UTF-8 in `camera`, a truncated field in a well-framed message, an 11-byte
+//! varint or a message over `--max-request-bytes` — the bad one gets an INVALID_ARGUMENT ack and
+//! the batches after it are accepted and delivered (their frame comes out complete, on
+//! `Subscribe` and, for `Stream`, on the call itself). What the framing cannot get past (the
+//! request ending inside a message) ends the call with INVALID_ARGUMENT, never INTERNAL. The
+//! messages are framed by hand and sent over a real HTTP/2 gRPC channel, one chunk at a time,
+//! the call open throughout.
 mod common;
 
 use std::time::Duration;
 
 use common::*;
 use crossview::serve::pb;
+use crossview::serve::pb::stream_response::Event;
 use futures::StreamExt;
 use http_body::Frame;
 use prost::Message;
@@ -24,14 +26,29 @@ use tower::ServiceExt;
 
 type Chunk = Result<Frame<Bytes>, std::convert::Infallible>;
 
-/// One open `Push` call whose request bytes the test writes itself.
-struct RawPush {
-    tx: Option<mpsc::Sender<Chunk>>,
-    acks: Streaming<pb::BatchAck>,
+/// The two calls that take a stream of batches.
+#[derive(Debug, Clone, Copy)]
+enum Method {
+    Push,
+    Stream,
 }
 
-impl RawPush {
-    async fn open(server: &TestServer) -> RawPush {
+/// What comes back on a call: `Push` acks, or `Stream` events.
+enum Responses {
+    Push(Streaming<pb::BatchAck>),
+    Stream(Streaming<pb::StreamResponse>),
+}
+
+/// One open `Push` or `Stream` call whose request bytes the test writes itself.
+struct RawCall {
+    tx: Option<mpsc::Sender<Chunk>>,
+    responses: Responses,
+    /// Frame results that came on a `Stream` call while the test waited for an ack.
+    results: Vec<pb::FrameResult>,
+}
+
+impl RawCall {
+    async fn open(server: &TestServer, method: Method) -> RawCall {
         let ch = Channel::from_shared(server.url(""))
             .unwrap()
             .connect()
@@ -41,19 +58,33 @@ impl RawPush {
         let body = tonic::body::Body::new(http_body_util::StreamBody::new(ReceiverStream::new(rx)));
         let req = http::Request::builder()
             .method("POST")
-            .uri(server.url("/crossview.v1.Association/Push"))
+            .uri(server.url(&format!("/crossview.v1.Association/{method:?}")))
             .header("content-type", "application/grpc")
             .header("te", "trailers")
             .body(body)
             .unwrap();
-        let resp = guard("Push call", ch.oneshot(req))
-            .await
-            .expect("Push call");
+        let resp = guard("the call", ch.oneshot(req)).await.expect("the call");
         let (parts, body) = resp.into_parts();
-        let decoder = tonic_prost::ProstDecoder::<pb::BatchAck>::default();
-        RawPush {
+        fn decode<M: Message + Default + 'static>(
+            body: tonic::body::Body,
+            status: http::StatusCode,
+        ) -> Streaming<M> {
+            Streaming::new_response(
+                tonic_prost::ProstDecoder::default(),
+                body,
+                status,
+                None,
+                None,
+            )
+        }
+        let responses = match method {
+            Method::Push => Responses::Push(decode(body, parts.status)),
+            Method::Stream => Responses::Stream(decode(body, parts.status)),
+        };
+        RawCall {
             tx: Some(tx),
-            acks: Streaming::new_response(decoder, body, parts.status, None, None),
+            responses,
+            results: Vec::new(),
         }
     }
 
@@ -73,13 +104,46 @@ impl RawPush {
         self.send(b).await;
     }
 
-    /// The next ack, or how the call ended.
-    async fn next(&mut self) -> Result<Option<pb::BatchAck>, tonic::Status> {
-        guard("ack", self.acks.message()).await
+    /// The next response (a `Push` ack as an [`Event::Ack`]), or how the call ended.
+    async fn next(&mut self) -> Result<Option<Event>, tonic::Status> {
+        match &mut self.responses {
+            Responses::Push(acks) => Ok(guard("ack", acks.message()).await?.map(Event::Ack)),
+            Responses::Stream(events) => Ok(guard("event", events.message())
+                .await?
+                .map(|r| r.event.expect("a Stream response with an event"))),
+        }
     }
 
+    /// The next ack; frame results before it are kept for [`RawCall::result`].
     async fn ack(&mut self) -> pb::BatchAck {
-        self.next().await.expect("an ack").expect("an ack")
+        loop {
+            match self.next().await.expect("an ack").expect("an ack") {
+                Event::Ack(a) => return a,
+                Event::Result(r) => self.results.push(r),
+            }
+        }
+    }
+
+    /// The next frame result of a `Stream` call.
+    async fn result(&mut self) -> pb::FrameResult {
+        if !self.results.is_empty() {
+            return self.results.remove(0);
+        }
+        match self.next().await.expect("a result").expect("a result") {
+            Event::Result(r) => r,
+            Event::Ack(a) => panic!("a result, not {a:?}"),
+        }
+    }
+
+    /// How the call ended (frame results before that are skipped).
+    async fn status(&mut self) -> tonic::Status {
+        loop {
+            match self.next().await {
+                Err(e) => return e,
+                Ok(Some(Event::Result(_))) => {}
+                other => panic!("the call ends with a status, not {other:?}"),
+            }
+        }
     }
 
     /// Half-closes the request.
@@ -121,58 +185,70 @@ async fn setup(
     (server, results)
 }
 
-/// [good c0, bad, good c1, good c2] of frame 7 on one open call: the bad message gets its own
-/// INVALID_ARGUMENT ack (message containing `expect`), the others are accepted, frame 7 comes
-/// out complete with every box in an identity, and the call ends cleanly at the half-close.
+/// The frame's result came out complete with every box of [`good_bad_good`] in an identity.
+fn check_complete(r: &pb::FrameResult, frame_id: u64) {
+    assert_eq!((r.frame_id, r.complete), (frame_id, true), "{r:?}");
+    assert!(r.missing_cameras.is_empty() && r.error.is_empty(), "{r:?}");
+    check_identities(r, &[2, 2, 2]);
+    let members: usize = r.identities.iter().map(|i| i.members.len()).sum();
+    assert_eq!(members, 6, "{r:?}");
+}
+
+/// [good c0, bad, good c1, good c2] of one frame on one open call, first of `Push` (frame 7),
+/// then of `Stream` (frame 8): the bad message gets its own INVALID_ARGUMENT ack (message
+/// containing `expect`), the others are accepted, the frame comes out complete with every box
+/// in an identity (on `Subscribe`, and on the call itself for `Stream`), and the call ends
+/// cleanly at the half-close.
 async fn good_bad_good(
     bad: &[u8],
     expect: &str,
     server: TestServer,
     mut results: Streaming<pb::FrameResult>,
 ) {
-    let before = metric(
-        &server.metrics().await,
-        "crossview_errors_total{kind=\"invalid_argument\"}",
-    );
-    let mut push = RawPush::open(&server).await;
-    push.send_message(&encode(&batch(0, 7, 2))).await;
-    let a = push.ack().await;
-    assert_eq!(
-        (a.code, a.camera.as_str(), a.frame_id),
-        (0, "c0", 7),
-        "{a:?}"
-    );
+    for (method, frame_id) in [(Method::Push, 7), (Method::Stream, 8)] {
+        let before = metric(
+            &server.metrics().await,
+            "crossview_errors_total{kind=\"invalid_argument\"}",
+        );
+        let mut call = RawCall::open(&server, method).await;
+        call.send_message(&encode(&batch(0, frame_id, 2))).await;
+        let a = call.ack().await;
+        assert_eq!(
+            (a.code, a.camera.as_str(), a.frame_id),
+            (0, "c0", frame_id),
+            "{method:?}: {a:?}"
+        );
 
-    push.send_message(bad).await;
-    let a = push.ack().await;
-    assert_eq!(a.code, Code::InvalidArgument as i32, "{a:?}");
-    assert_eq!(a.kind, "invalid_argument", "{a:?}");
-    assert!(a.message.contains(expect), "{a:?}");
+        call.send_message(bad).await;
+        let a = call.ack().await;
+        assert_eq!(a.code, Code::InvalidArgument as i32, "{method:?}: {a:?}");
+        assert_eq!(a.kind, "invalid_argument", "{method:?}: {a:?}");
+        assert!(a.message.contains(expect), "{method:?}: {a:?}");
 
-    push.send_message(&encode(&batch(1, 7, 2))).await;
-    let a = push.ack().await;
-    assert_eq!((a.code, a.camera.as_str()), (0, "c1"), "{a:?}");
-    push.send_message(&encode(&batch(2, 7, 2))).await;
-    let a = push.ack().await;
-    assert_eq!((a.code, a.camera.as_str()), (0, "c2"), "{a:?}");
+        call.send_message(&encode(&batch(1, frame_id, 2))).await;
+        let a = call.ack().await;
+        assert_eq!((a.code, a.camera.as_str()), (0, "c1"), "{method:?}: {a:?}");
+        call.send_message(&encode(&batch(2, frame_id, 2))).await;
+        let a = call.ack().await;
+        assert_eq!((a.code, a.camera.as_str()), (0, "c2"), "{method:?}: {a:?}");
 
-    let r = guard("frame 7", results.next()).await.unwrap().unwrap();
-    assert_eq!((r.frame_id, r.complete), (7, true), "{r:?}");
-    assert!(r.missing_cameras.is_empty() && r.error.is_empty(), "{r:?}");
-    check_identities(&r, &[2, 2, 2]);
-    let members: usize = r.identities.iter().map(|i| i.members.len()).sum();
-    assert_eq!(members, 6, "{r:?}");
+        let r = guard("the frame", results.next()).await.unwrap().unwrap();
+        check_complete(&r, frame_id);
+        if let Method::Stream = method {
+            check_complete(&call.result().await, frame_id);
+        }
 
-    push.close();
-    assert!(
-        matches!(push.next().await, Ok(None)),
-        "the call ends cleanly"
-    );
-    let after = metric(
-        &server.metrics().await,
-        "crossview_errors_total{kind=\"invalid_argument\"}",
-    );
-    assert_eq!(after, before + 1.0);
+        call.close();
+        assert!(
+            matches!(call.next().await, Ok(None)),
+            "{method:?}: the call ends cleanly"
+        );
+        let after = metric(
+            &server.metrics().await,
+            "crossview_errors_total{kind=\"invalid_argument\"}",
+        );
+        assert_eq!(after, before + 1.0, "{method:?}");
+    }
     server.shutdown().await.unwrap();
 }
 
@@ -234,7 +310,7 @@ async fn a_message_over_the_limit_is_skipped_and_refused_alone() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_request_ending_inside_a_message_ends_the_call_with_invalid_argument() {
+async fn a_request_ending_inside_a_message_ends_either_call_with_invalid_argument() {
     let server = start(|c| c.limits.max_request_bytes = 4096).await;
     let good = frame(&encode(&batch(0, 7, 1)));
     // Ending inside a payload, inside a header, and inside an over-limit message being skipped
@@ -246,15 +322,18 @@ async fn a_request_ending_inside_a_message_ends_the_call_with_invalid_argument()
         (&good[..3], "ended inside a message header (3 of 5 bytes)"),
         (&big_header, "(0 of 1073741824 bytes)"),
     ];
-    for (frame_id, (tail, expect)) in (10u64..).zip(cases) {
-        let mut push = RawPush::open(&server).await;
-        push.send_message(&encode(&batch(0, frame_id, 1))).await;
-        assert_eq!(push.ack().await.code, 0);
-        push.send(tail).await;
-        push.close();
-        let e = push.next().await.expect_err("the call ends with a status");
-        assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
-        assert!(e.message().contains(expect), "{e:?}");
+    let calls = [Method::Push, Method::Stream]
+        .into_iter()
+        .flat_map(|m| cases.map(|c| (m, c)));
+    for (frame_id, (method, (tail, expect))) in (10u64..).zip(calls) {
+        let mut call = RawCall::open(&server, method).await;
+        call.send_message(&encode(&batch(0, frame_id, 1))).await;
+        assert_eq!(call.ack().await.code, 0, "{method:?}");
+        call.send(tail).await;
+        call.close();
+        let e = call.status().await;
+        assert_eq!(e.code(), Code::InvalidArgument, "{method:?}: {e:?}");
+        assert!(e.message().contains(expect), "{method:?}: {e:?}");
     }
     server.shutdown().await.unwrap();
 }

@@ -169,20 +169,9 @@ fn push_one(svc: &Service, b: crate::Result<pb::Batch>) -> pb::BatchAck {
 
 pub(crate) type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
 
-/// The acknowledgements of a `Push` call: one per message, in order, until the client
-/// half-closes, the server shuts down or the transport ends the call (its status is the
-/// call's: `messages` yields it and ends).
-pub(crate) fn push_acks<S>(svc: Arc<Service>, messages: S) -> BoxStream<pb::BatchAck>
-where
-    S: Stream<Item = Result<crate::Result<pb::Batch>, Status>> + Send + 'static,
-{
-    let stop = svc.shutting_down();
-    Box::pin(
-        messages
-            .take_until(stop)
-            .map(move |m| m.map(|b| push_one(&svc, b))),
-    )
-}
+/// One item of what a `Push` or `Stream` call reads: a batch, or a message that is not one
+/// (see [`super::push`]); or the status the transport ends the call with (the call's status).
+pub(crate) type Incoming = Result<crate::Result<pb::Batch>, Status>;
 
 /// Forwards a `Stream` call's scene results to its response until the call is over: the client
 /// cancelled (the subscriber is dropped at once, not at the next frame), the scene's results
@@ -255,6 +244,114 @@ impl GrpcService {
     pub fn new(svc: Arc<Service>, stall_timeout: std::time::Duration) -> Self {
         GrpcService { svc, stall_timeout }
     }
+
+    /// The acknowledgements of a `Push` call: one per message, in order, until the client
+    /// half-closes, the server shuts down or the transport ends the call (its status is the
+    /// call's: `messages` yields it and ends).
+    pub(crate) fn push_acks<S>(&self, messages: S) -> BoxStream<pb::BatchAck>
+    where
+        S: Stream<Item = Incoming> + Send + 'static,
+    {
+        let svc = self.svc.clone();
+        let stop = svc.shutting_down();
+        Box::pin(
+            messages
+                .take_until(stop)
+                .map(move |m| m.map(|b| push_one(&svc, b))),
+        )
+    }
+
+    /// The responses of a `Stream` call: one ack per message, in order (a message that is not
+    /// a batch gets an INVALID_ARGUMENT ack and fixes no scene), interleaved with the results
+    /// of the scene fixed by the first accepted batch.
+    pub(crate) fn stream_responses<S>(&self, request: Request<S>) -> BoxStream<pb::StreamResponse>
+    where
+        S: Stream<Item = Incoming> + Send + 'static,
+    {
+        use pb::stream_response::Event;
+        let svc = self.svc.clone();
+        let conn = request
+            .extensions()
+            .get::<super::conn::ConnHandle>()
+            .cloned();
+        let stall = Some(self.stall_timeout);
+        let input = request.into_inner();
+        let (tx, rx) = mpsc::channel::<Result<pb::StreamResponse, Status>>(64);
+        tokio::spawn(async move {
+            tokio::pin!(input);
+            let mut scene: Option<String> = None;
+            // The newest frame id this call had accepted; sent to the result forwarder when the
+            // client half-closes, so the call ends once that frame's result is out.
+            let mut last_accepted: Option<u64> = None;
+            let (half_closed, half_closed_rx) = watch::channel::<Option<Option<u64>>>(None);
+            let stop = svc.shutting_down();
+            tokio::pin!(stop);
+            loop {
+                let msg = tokio::select! {
+                    m = input.next() => m,
+                    _ = &mut stop => None,
+                    // The client went away: stop reading (the forwarder notices too).
+                    _ = tx.closed() => break,
+                };
+                let b = match msg {
+                    None => break,
+                    Some(Err(s)) => {
+                        let _ = tx.send(Err(s)).await;
+                        break;
+                    }
+                    Some(Ok(b)) => b,
+                };
+                let ack = match (&scene, b) {
+                    // Not a batch: refused like one, the scene still to be fixed.
+                    (_, Err(e)) => push_one(&svc, Err(e)),
+                    (None, Ok(b)) => match svc.subscribe(&b.scene, conn.clone(), stall) {
+                        Ok(results) => {
+                            scene = Some(b.scene.clone());
+                            let linger = svc
+                                .scene(&b.scene)
+                                .map(|s| {
+                                    let d = s.describe();
+                                    std::time::Duration::from_millis(d.sync_timeout_ms)
+                                        + s.limits().frame_deadline
+                                })
+                                .unwrap_or_default();
+                            tokio::spawn(forward_results(
+                                results,
+                                tx.clone(),
+                                half_closed_rx.clone(),
+                                linger,
+                            ));
+                            push_one(&svc, Ok(b))
+                        }
+                        Err(e) => reject(&b, e),
+                    },
+                    (Some(s), Ok(b)) if *s != b.scene => reject(
+                        &b,
+                        Error::invalid(
+                            "scene",
+                            format!(
+                                "this stream serves scene '{s}', got '{}'",
+                                super::truncate_echo(&b.scene)
+                            ),
+                        ),
+                    ),
+                    (Some(_), Ok(b)) => push_one(&svc, Ok(b)),
+                };
+                if ack.code == 0 {
+                    last_accepted =
+                        Some(last_accepted.map_or(ack.frame_id, |l| l.max(ack.frame_id)));
+                }
+                let item = pb::StreamResponse {
+                    event: Some(Event::Ack(ack)),
+                };
+                if tx.send(Ok(item)).await.is_err() {
+                    break;
+                }
+            }
+            let _ = half_closed.send(Some(last_accepted));
+        });
+        Box::pin(ReceiverStream::new(rx))
+    }
 }
 
 #[tonic::async_trait]
@@ -275,11 +372,12 @@ impl pb::association_server::Association for GrpcService {
         &self,
         request: Request<Streaming<pb::Batch>>,
     ) -> Result<Response<Self::PushStream>, Status> {
-        // The server routes Push to `super::push::Routes`, which keeps the call open past a
-        // message that does not decode; this generated entry point (tonic's framing: such a
-        // message ends the call) serves only direct users of `AssociationServer`.
+        // The server routes Push and Stream to `super::push::Routes`, which keeps the call
+        // open past a message that does not decode; these generated entry points (tonic's
+        // framing: such a message ends the call) serve only direct users of
+        // `AssociationServer`.
         let messages = request.into_inner().map(|m| m.map(Ok));
-        Ok(Response::new(push_acks(self.svc.clone(), messages)))
+        Ok(Response::new(self.push_acks(messages)))
     }
 
     type SubscribeStream = BoxStream<pb::FrameResult>;
@@ -306,86 +404,9 @@ impl pb::association_server::Association for GrpcService {
         &self,
         request: Request<Streaming<pb::Batch>>,
     ) -> Result<Response<Self::StreamStream>, Status> {
-        use pb::stream_response::Event;
-        let svc = self.svc.clone();
-        let conn = request
-            .extensions()
-            .get::<super::conn::ConnHandle>()
-            .cloned();
-        let stall = Some(self.stall_timeout);
-        let mut input = request.into_inner();
-        let (tx, rx) = mpsc::channel::<Result<pb::StreamResponse, Status>>(64);
-        tokio::spawn(async move {
-            let mut scene: Option<String> = None;
-            // The newest frame id this call had accepted; sent to the result forwarder when the
-            // client half-closes, so the call ends once that frame's result is out.
-            let mut last_accepted: Option<u64> = None;
-            let (half_closed, half_closed_rx) = watch::channel::<Option<Option<u64>>>(None);
-            let stop = svc.shutting_down();
-            tokio::pin!(stop);
-            loop {
-                let msg = tokio::select! {
-                    m = input.next() => m,
-                    _ = &mut stop => None,
-                    // The client went away: stop reading (the forwarder notices too).
-                    _ = tx.closed() => break,
-                };
-                let b = match msg {
-                    None => break,
-                    Some(Err(s)) => {
-                        let _ = tx.send(Err(s)).await;
-                        break;
-                    }
-                    Some(Ok(b)) => b,
-                };
-                let ack = match &scene {
-                    None => match svc.subscribe(&b.scene, conn.clone(), stall) {
-                        Ok(results) => {
-                            scene = Some(b.scene.clone());
-                            let linger = svc
-                                .scene(&b.scene)
-                                .map(|s| {
-                                    let d = s.describe();
-                                    std::time::Duration::from_millis(d.sync_timeout_ms)
-                                        + s.limits().frame_deadline
-                                })
-                                .unwrap_or_default();
-                            tokio::spawn(forward_results(
-                                results,
-                                tx.clone(),
-                                half_closed_rx.clone(),
-                                linger,
-                            ));
-                            push_one(&svc, Ok(b))
-                        }
-                        Err(e) => reject(&b, e),
-                    },
-                    Some(s) if *s != b.scene => reject(
-                        &b,
-                        Error::invalid(
-                            "scene",
-                            format!(
-                                "this stream serves scene '{s}', got '{}'",
-                                super::truncate_echo(&b.scene)
-                            ),
-                        ),
-                    ),
-                    Some(_) => push_one(&svc, Ok(b)),
-                };
-                if ack.code == 0 {
-                    last_accepted =
-                        Some(last_accepted.map_or(ack.frame_id, |l| l.max(ack.frame_id)));
-                }
-                let item = pb::StreamResponse {
-                    event: Some(Event::Ack(ack)),
-                };
-                if tx.send(Ok(item)).await.is_err() {
-                    break;
-                }
-            }
-            let _ = half_closed.send(Some(last_accepted));
-        });
-        Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
+        // See `push` above.
+        let request = request.map(|messages| messages.map(|m| m.map(Ok)));
+        Ok(Response::new(self.stream_responses(request)))
     }
 
     async fn list_scenes(

@@ -4,7 +4,7 @@
 //! pure frame synchronizer; [`scene`] a live scene (synchronizer + encoder worker thread +
 //! results broadcast); [`engine`] association of one frame; [`service`] the one domain API;
 //! [`grpc`] and [`http`] thin transports with the error mappings ([`push`]: the gRPC `Push`
-//! call's own request framing, so a bad message is refused alone); [`auth`], [`tls`],
+//! and `Stream` calls' own request framing, so a bad message is refused alone); [`auth`], [`tls`],
 //! [`metrics`]; this module binds them into one listener with graceful shutdown.
 //!
 //! Tests and the CLI start it the same way: [`Server::load`] (or [`run`]) then
@@ -365,13 +365,11 @@ async fn build_router(svc: &Arc<Service>, config: &ServeConfig) -> Result<Router
         .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
         .build_v1()
         .map_err(|e| Error::Runtime(format!("gRPC reflection: {e}")))?;
-    let generated = AssociationServer::new(grpc::GrpcService::new(
-        svc.clone(),
-        config.connections.subscriber_stall_timeout,
-    ))
-    .max_decoding_message_size(limit)
-    .max_encoding_message_size(usize::MAX);
-    let association = push::Routes::new(generated, svc.clone(), limit);
+    let grpc = grpc::GrpcService::new(svc.clone(), config.connections.subscriber_stall_timeout);
+    let generated = AssociationServer::new(grpc.clone())
+        .max_decoding_message_size(limit)
+        .max_encoding_message_size(usize::MAX);
+    let association = push::Routes::new(generated, grpc, limit);
     let mut router = Router::new();
     let body_timeout = config.connections.body_timeout;
     router = grpc_route(router, association, body_timeout);

@@ -1,5 +1,5 @@
-//! The gRPC `Push` call's own request framing, so that one bad message costs one
-//! acknowledgement, not the call.
+//! The request framing of the gRPC calls that take a stream of batches, `Push` and `Stream`,
+//! so that one bad message costs one acknowledgement, not the call.
 //!
 //! tonic decodes a request stream with one codec and ends the call at the first message that
 //! fails: INTERNAL when it does not parse, OUT_OF_RANGE when it is over the size limit. But a
@@ -12,16 +12,17 @@
 //!   upload, and `--body-timeout` still bounds each message);
 //! - [`Decoder`] never fails a well-framed message: it yields the batch, or the domain error
 //!   (INVALID_ARGUMENT, with prost's account of the offending field) that
-//!   [`super::grpc::push_acks`] acknowledges like any other refused batch;
+//!   [`GrpcService::push_acks`] and [`GrpcService::stream_responses`] acknowledge like any
+//!   other refused batch;
 //! - only what the framing itself cannot get past ends the call: the request ending inside a
-//!   message (INVALID_ARGUMENT), a compressed flag of 1 (this call accepts no compression; the
+//!   message (INVALID_ARGUMENT), a compressed flag of 1 (these calls accept no compression; the
 //!   gRPC compression spec requires INTERNAL there) or any other flag but 0 (INVALID_ARGUMENT).
 //!
-//! [`Routes`] serves `Push` this way and hands every other method to the generated server.
+//! [`Routes`] serves `Push` and `Stream` this way and hands every other method to the generated
+//! server.
 use std::convert::Infallible;
 use std::marker::PhantomData;
 use std::pin::Pin;
-use std::sync::Arc;
 use std::task::{Context, Poll, ready};
 
 use http_body::Frame;
@@ -32,39 +33,39 @@ use tonic::codegen::BoxFuture;
 use tonic::server::NamedService;
 use tonic::{Request, Response, Status, Streaming};
 
-use super::grpc::{GrpcService, push_acks};
+use super::grpc::{BoxStream, GrpcService};
 use super::pb;
 use super::pb::association_server::AssociationServer;
-use super::service::Service;
 use crate::Error;
 
-/// The path of the method served here.
+/// The paths of the methods served here.
 pub const PUSH_PATH: &str = "/crossview.v1.Association/Push";
+pub const STREAM_PATH: &str = "/crossview.v1.Association/Stream";
 
 /// Tag of a re-framed message: the original payload follows.
 const TAG_MESSAGE: u8 = 0;
 /// Tag of a re-framed message: it was over the limit; its declared length (u32) follows.
 const TAG_TOO_LARGE: u8 = 1;
 
-/// What one `Push` message decodes to: a batch, or why it is not one.
+/// What one `Push` or `Stream` message decodes to: a batch, or why it is not one.
 pub type Item = crate::Result<pb::Batch>;
 
-/// The association service's routes: `Push` with the framing of this module, the rest by
-/// the generated server.
+/// The association service's routes: `Push` and `Stream` with the framing of this module, the
+/// rest by the generated server.
 #[derive(Debug, Clone)]
 pub struct Routes {
     generated: AssociationServer<GrpcService>,
-    svc: Arc<Service>,
+    grpc: GrpcService,
     limit: usize,
 }
 
 impl Routes {
-    /// `generated` for every method but `Push`; `Push` messages larger than `limit` bytes are
-    /// acknowledged as refused and skipped.
-    pub fn new(generated: AssociationServer<GrpcService>, svc: Arc<Service>, limit: usize) -> Self {
+    /// `generated` for every method but `Push` and `Stream`, which `grpc` serves; their messages
+    /// larger than `limit` bytes are acknowledged as refused and skipped.
+    pub fn new(generated: AssociationServer<GrpcService>, grpc: GrpcService, limit: usize) -> Self {
         Routes {
             generated,
-            svc,
+            grpc,
             limit,
         }
     }
@@ -84,24 +85,38 @@ impl tower::Service<http::Request<tonic::body::Body>> for Routes {
     }
 
     fn call(&mut self, req: http::Request<tonic::body::Body>) -> Self::Future {
-        if req.uri().path() != PUSH_PATH {
-            return self.generated.call(req);
+        let grpc = self.grpc.clone();
+        match req.uri().path() {
+            PUSH_PATH => serve(req, self.limit, move |r| grpc.push_acks(r.into_inner())),
+            STREAM_PATH => serve(req, self.limit, move |r| grpc.stream_responses(r)),
+            _ => self.generated.call(req),
         }
-        let svc = self.svc.clone();
-        let limit = self.limit;
-        Box::pin(async move {
-            let call = tower::service_fn(move |r: Request<Streaming<Item>>| {
-                let acks = push_acks(svc.clone(), r.into_inner());
-                async move { Ok::<_, Status>(Response::new(acks)) }
-            });
-            // Reframe has already bounded every message; tonic's own limit must not interfere.
-            let mut grpc = tonic::server::Grpc::new(PushCodec::<pb::BatchAck>::new(limit))
-                .max_decoding_message_size(usize::MAX)
-                .max_encoding_message_size(usize::MAX);
-            let req = req.map(|b| Reframe::new(b, limit));
-            Ok(grpc.streaming(call, req).await)
-        })
     }
+}
+
+/// Serves one call whose request messages are framed by this module: `respond` turns the
+/// decoded request into the response stream.
+fn serve<E, F>(
+    req: http::Request<tonic::body::Body>,
+    limit: usize,
+    mut respond: F,
+) -> BoxFuture<http::Response<tonic::body::Body>, Infallible>
+where
+    E: Message + Send + 'static,
+    F: FnMut(Request<Streaming<Item>>) -> BoxStream<E> + Send + 'static,
+{
+    Box::pin(async move {
+        let call = tower::service_fn(move |r: Request<Streaming<Item>>| {
+            let responses = respond(r);
+            async move { Ok::<_, Status>(Response::new(responses)) }
+        });
+        // Reframe has already bounded every message; tonic's own limit must not interfere.
+        let mut grpc = tonic::server::Grpc::new(PushCodec::<E>::new(limit))
+            .max_decoding_message_size(usize::MAX)
+            .max_encoding_message_size(usize::MAX);
+        let req = req.map(|b| Reframe::new(b, limit));
+        Ok(grpc.streaming(call, req).await)
+    })
 }
 
 /// Encodes responses with prost; decodes requests re-framed by [`Reframe`] with [`Decoder`].
@@ -148,7 +163,9 @@ impl tonic::codec::Decoder for Decoder {
 
     fn decode(&mut self, buf: &mut DecodeBuf<'_>) -> Result<Option<Item>, Status> {
         if !buf.has_remaining() {
-            return Err(Status::internal("Push framing: a message without its tag"));
+            return Err(Status::internal(
+                "request re-framing: a message without its tag",
+            ));
         }
         let item = match buf.get_u8() {
             TAG_MESSAGE => pb::Batch::decode(&mut *buf).map_err(|e| {
@@ -163,7 +180,11 @@ impl tonic::codec::Decoder for Decoder {
                     self.limit
                 ),
             )),
-            _ => return Err(Status::internal("Push framing: a message with a bad tag")),
+            _ => {
+                return Err(Status::internal(
+                    "request re-framing: a message with a bad tag",
+                ));
+            }
         };
         // A payload prost gave up on part way: the rest is this message's too.
         buf.advance(buf.remaining());
@@ -182,7 +203,7 @@ enum At {
     Skip { len: u32, left: u32 },
 }
 
-/// A `Push` request body re-framed for [`Decoder`] (see the module docs).
+/// A `Push` or `Stream` request body re-framed for [`Decoder`] (see the module docs).
 pub struct Reframe {
     inner: tonic::body::Body,
     /// Largest payload passed on (at most `u32::MAX - 1`, so a tagged length fits).
@@ -244,8 +265,8 @@ impl Reframe {
                         0 => {}
                         1 => {
                             return Err(Status::internal(
-                                "message with the compressed flag set, but Push accepts no \
-                                 grpc-encoding",
+                                "message with the compressed flag set, but this call accepts \
+                                 no grpc-encoding",
                             ));
                         }
                         f => {
