@@ -8,8 +8,11 @@ use crossview::io::Recording;
 use crossview::model::{Encoder, ModelMetadata, OnnxEncoder, write_onnx};
 use crossview::train::TrainModel;
 use crossview::train::TrainingSet;
+use crossview::train::label_free::LabelFreeScorer;
 use crossview::train::sampler::MIN_FRAMES;
-use crossview::train::trainer::{CheckpointOptions, TrainConfig, Validator, train};
+use crossview::train::trainer::{
+    CheckpointOptions, Scoring, Select, TrainConfig, Validator, train,
+};
 use crossview::train::validate::{CandleEncoder, EvalValidator, candidate_thresholds};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -97,14 +100,12 @@ fn short_run_lowers_the_loss_and_beats_an_untrained_encoder() {
     let mut validator = EvalValidator::new(val, candidate_thresholds(), 0.1).unwrap();
     let untrained = TrainModel::new(cfg.encoder(), 3, cfg.seed).unwrap();
     let before = validator.validate(&untrained).unwrap();
-    let out = train(
-        &set,
-        &cfg,
-        Some(&mut validator),
-        &CheckpointOptions::default(),
-        false,
-    )
-    .unwrap();
+    let scoring = Scoring {
+        validator: Some(&mut validator),
+        select: Select::Labelled,
+        ..Scoring::default()
+    };
+    let out = train(&set, &cfg, scoring, &CheckpointOptions::default(), false).unwrap();
     let first = out.history.first().unwrap().total;
     let last = out.history.last().unwrap().total;
     assert!(last < 0.7 * first, "loss {first} -> {last}");
@@ -118,13 +119,99 @@ fn short_run_lowers_the_loss_and_beats_an_untrained_encoder() {
     assert!((0.0..=0.9).contains(&after.threshold));
 }
 
+/// The label-free score needs no labels and sees what training did: on frames held out from
+/// training, the synchronized views get closer than the shifted ones and the assignments
+/// close their cycles far more often after a short run than before; the run keeps the epoch
+/// the score prefers and its threshold.
+#[test]
+fn label_free_score_rises_with_training_and_chooses_the_epoch() {
+    let mut set =
+        TrainingSet::from_recording(&synthetic(84, 6, 11).without_ids(), MIN_FRAMES).unwrap();
+    let held_out = set.split_off_tail(20);
+    assert_eq!((set.num_frames(), held_out.num_frames()), (64, 20));
+    let scorer = LabelFreeScorer::new(held_out, candidate_thresholds(), 3).unwrap();
+    let cfg = TrainConfig {
+        val_every: 25,
+        ema_decay: 0.98,
+        ..small_config(150)
+    };
+    let untrained = TrainModel::new(cfg.encoder(), 3, cfg.seed).unwrap();
+    let (before, _) = scorer.score(&mut CandleEncoder::new(&untrained)).unwrap();
+    let scoring = Scoring {
+        label_free: Some(&scorer),
+        ..Scoring::default()
+    };
+    let out = train(&set, &cfg, scoring, &CheckpointOptions::default(), false).unwrap();
+    let after = out.label_free.expect("scored");
+    assert_eq!(out.selected_by, Some(Select::LabelFree));
+    assert!(
+        after.sync_acc > before.sync_acc + 0.2 && after.cycle > before.cycle + 0.2,
+        "before {before:?} after {after:?}"
+    );
+    // The kept epoch is the best-scored one of the history.
+    let best = out
+        .history
+        .iter()
+        .filter_map(|r| r.label_free.map(|s| (r.epoch, s.key())))
+        .fold((0, f64::MIN), |b, (e, k)| if k > b.1 { (e, k) } else { b });
+    assert_eq!(out.best_epoch, best.0);
+    // Deterministic: the same model scores the same.
+    let model = TrainModel::from_weights(&out.weights, 0).unwrap();
+    let (again, _) = scorer.score(&mut CandleEncoder::new(&model)).unwrap();
+    assert_eq!(again, after);
+    // Too few held-out frames is a clear error, not a panic.
+    let tiny = set.split_off_tail(5);
+    assert!(LabelFreeScorer::new(tiny, candidate_thresholds(), 3).is_err());
+}
+
+/// The self-training stage: pseudo-identities from the first stage's confident, multi-view
+/// identities (no ground truth) teach the encoder more than the same number of epochs of the
+/// first stage's losses alone.
+#[test]
+fn self_training_beats_as_long_a_first_stage() {
+    let rec = synthetic(64, 6, 21);
+    let set = TrainingSet::from_recording(&rec.without_ids(), MIN_FRAMES).unwrap();
+    let val = synthetic(20, 6, 22);
+    let none = CheckpointOptions::default();
+    let plain = train(&set, &small_config(120), Scoring::default(), &none, false).unwrap();
+    let both = TrainConfig {
+        self_train_epochs: 60,
+        self_train_lr: 3e-3,
+        ..small_config(60)
+    };
+    let out = train(&set, &both, Scoring::default(), &none, false).unwrap();
+    assert_eq!(out.history.len(), 120);
+    assert!(
+        out.history[60..].iter().any(|r| r.id > 0.0),
+        "no pseudo-identity loss"
+    );
+    assert!(out.history[..60].iter().all(|r| r.id == 0.0));
+    let mut v = EvalValidator::new(val, candidate_thresholds(), 0.1).unwrap();
+    let mut acc = |w: &crossview::model::EncoderWeights| {
+        let m = TrainModel::from_weights(w, 0).unwrap();
+        v.validate(&m).unwrap().acc
+    };
+    let (a1, a2) = (acc(&plain.weights), acc(&out.weights));
+    assert!(
+        a2 > a1,
+        "120 plain epochs ACC {a1:.3}, 60 + 60 self-training {a2:.3}"
+    );
+}
+
 #[test]
 fn exported_onnx_embeds_like_the_model_in_training() {
     let rec = synthetic(30, 5, 3);
     let set = TrainingSet::from_recording(&rec, MIN_FRAMES).unwrap();
     let mut cfg = small_config(2);
     cfg.width = 40; // != 4F + C: exercises the input projection
-    let out = train(&set, &cfg, None, &CheckpointOptions::default(), false).unwrap();
+    let out = train(
+        &set,
+        &cfg,
+        Scoring::default(),
+        &CheckpointOptions::default(),
+        false,
+    )
+    .unwrap();
     let model = TrainModel::from_weights(&out.weights, 0).unwrap();
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("m.onnx");
@@ -165,10 +252,14 @@ fn exported_onnx_embeds_like_the_model_in_training() {
 fn same_seed_same_run_and_resume_continues_exactly() {
     let rec = synthetic(30, 4, 4);
     let set = TrainingSet::from_recording(&rec, MIN_FRAMES).unwrap();
-    let cfg = small_config(4);
+    // With the moving average on, so that its state is checkpointed too.
+    let cfg = TrainConfig {
+        ema_decay: 0.9,
+        ..small_config(4)
+    };
     let none = CheckpointOptions::default();
-    let a = train(&set, &cfg, None, &none, false).unwrap();
-    let b = train(&set, &cfg, None, &none, false).unwrap();
+    let a = train(&set, &cfg, Scoring::default(), &none, false).unwrap();
+    let b = train(&set, &cfg, Scoring::default(), &none, false).unwrap();
     assert_eq!(a.weights, b.weights);
     // 2 epochs, checkpoint, then resume to 4.
     let dir = tempfile::tempdir().unwrap();
@@ -181,9 +272,9 @@ fn same_seed_same_run_and_resume_continues_exactly() {
         epochs: 2,
         ..cfg.clone()
     };
-    let h = train(&set, &half, None, &ck, false).unwrap();
+    let h = train(&set, &half, Scoring::default(), &ck, false).unwrap();
     assert_eq!(h.history.len(), 2);
-    let r = train(&set, &cfg, None, &ck, false).unwrap();
+    let r = train(&set, &cfg, Scoring::default(), &ck, false).unwrap();
     assert_eq!(r.history.len(), 4);
     assert_eq!(r.steps, a.steps);
     let max_diff = r

@@ -1,6 +1,6 @@
-//! `crossview train` as a user runs it: writes the ONNX model (with metadata, threshold from
-//! validation), the SVG curve and the history; records the training-box filter; refuses a
-//! one-camera recording and a filter that leaves no boxes clearly.
+//! `crossview train` as a user runs it: writes the ONNX model (with metadata; the epoch chosen
+//! without labels on held-out frames), the SVG curve and the history; records the training-box
+//! filter; refuses a one-camera recording and a filter that leaves no boxes clearly.
 use std::process::Command;
 
 use crossview::core::{CameraSpec, Detection, Frame, SceneSpec};
@@ -69,6 +69,7 @@ fn train_writes_model_curve_and_history() {
             "8",
         ])
         .args(["--max-edges", "4", "--val-every", "1", "--seed", "3"])
+        .args(["--self-train-epochs", "2"])
         .arg("--data")
         .arg(&data)
         .arg("--val")
@@ -94,7 +95,14 @@ fn train_writes_model_curve_and_history() {
     assert!(svg.starts_with("<svg"));
     let hist: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("m.history.json")).unwrap()).unwrap();
-    assert_eq!(hist.as_array().unwrap().len(), 3);
+    // 3 first-stage epochs and 2 of self-training, each scored.
+    let hist = hist.as_array().unwrap();
+    assert_eq!(hist.len(), 5);
+    assert!(
+        hist.iter()
+            .all(|r| !r["label_free"].is_null() && !r["val"].is_null())
+    );
+    assert!(meta.extra["crossview.selection"].contains("label-free"));
 }
 
 #[test]
@@ -105,6 +113,7 @@ fn without_validation_the_given_threshold_is_kept() {
     let out = dir.path().join("m.onnx");
     let st = Command::new(env!("CARGO_BIN_EXE_crossview"))
         .args(["train", "--quiet", "--epochs", "1", "--width", "16"])
+        .args(["--self-train-epochs", "0"])
         .args([
             "--fourier-features",
             "4",
@@ -156,7 +165,14 @@ fn box_filter_is_recorded_and_an_empty_result_is_refused() {
     let train = |extra: &[&str], out: &std::path::Path| {
         Command::new(env!("CARGO_BIN_EXE_crossview"))
             .args(["train", "--quiet", "--epochs", "1", "--width", "16"])
-            .args(["--fourier-features", "8", "--camera-dim", "8"])
+            .args([
+                "--fourier-features",
+                "8",
+                "--camera-dim",
+                "8",
+                "--self-train-epochs",
+                "0",
+            ])
             .args(extra)
             .arg("--data")
             .arg(&data)

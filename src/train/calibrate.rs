@@ -18,7 +18,10 @@ use crate::train::data::TrainingSet;
 const SHIFT: std::ops::Range<usize> = 5..20;
 
 /// Embeds every image of `set` (one encoder call per frame), each frame's rows split by camera.
-fn embed_all(encoder: &mut dyn Encoder, set: &TrainingSet) -> Result<Vec<FrameEmbeddings>> {
+pub(crate) fn embed_all(
+    encoder: &mut dyn Encoder,
+    set: &TrainingSet,
+) -> Result<Vec<FrameEmbeddings>> {
     set.images
         .iter()
         .map(|row| {

@@ -1,4 +1,4 @@
-//! Checkpoints: model parameters, Adam moments and the best validated weights in one
+//! Checkpoints: model parameters, Adam moments, the moving average and the best weights in one
 //! safetensors file, plus a JSON file with the counters and history. Written atomically.
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -7,8 +7,10 @@ use candle_core::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use crate::train::adam::Adam;
+use crate::train::label_free::LabelFreeScores;
 use crate::train::model::{TrainModel, ce};
-use crate::train::trainer::{EpochRecord, RunState, TrainConfig, ValScores};
+use crate::train::pseudo::PseudoLabels;
+use crate::train::trainer::{Best, EpochRecord, RunState, TrainConfig, ValScores};
 use crate::{Error, Result};
 
 const TENSORS: &str = "state.safetensors";
@@ -22,7 +24,18 @@ struct Meta {
     adam_steps: u64,
     train_seconds: f64,
     history: Vec<EpochRecord>,
-    best: Option<(ValScores, usize)>,
+    best: Option<BestMeta>,
+    #[serde(default)]
+    pseudo: Option<PseudoLabels>,
+    #[serde(default)]
+    stage_steps: u64,
+}
+
+#[derive(Debug, Serialize, Deserialize)]
+struct BestMeta {
+    epoch: usize,
+    val: Option<ValScores>,
+    label_free: Option<LabelFreeScores>,
 }
 
 /// True when `dir` holds a checkpoint.
@@ -43,8 +56,15 @@ pub fn save(dir: &Path, cfg: &TrainConfig, st: &RunState) -> Result<()> {
         tensors.insert(format!("adam_m.{name}"), st.adam.m[i].clone());
         tensors.insert(format!("adam_v.{name}"), st.adam.v[i].clone());
     }
-    if let Some((w, _, _)) = &st.best {
-        let bm = TrainModel::from_weights(w, 0)?;
+    if let Some(ema) = &st.ema {
+        for (name, var) in ema.named_vars() {
+            if !name.starts_with("decoder") {
+                tensors.insert(format!("ema.{name}"), var.as_tensor().clone());
+            }
+        }
+    }
+    if let Some(b) = &st.best {
+        let bm = TrainModel::from_weights(&b.weights, 0)?;
         for (name, var) in bm.named_vars() {
             if !name.starts_with("decoder") {
                 tensors.insert(format!("best.{name}"), var.as_tensor().clone());
@@ -58,7 +78,13 @@ pub fn save(dir: &Path, cfg: &TrainConfig, st: &RunState) -> Result<()> {
         adam_steps: st.adam.t,
         train_seconds: st.train_seconds,
         history: st.history.clone(),
-        best: st.best.as_ref().map(|(_, s, e)| (*s, *e)),
+        best: st.best.as_ref().map(|b| BestMeta {
+            epoch: b.epoch,
+            val: b.val,
+            label_free: b.label_free,
+        }),
+        pseudo: st.pseudo.clone(),
+        stage_steps: st.stage_steps,
     };
     let tmp = dir.join(format!("{TENSORS}.tmp"));
     candle_core::safetensors::save(&tensors, &tmp).map_err(ce)?;
@@ -124,8 +150,19 @@ pub fn load(dir: &Path, cfg: &TrainConfig, num_cameras: usize) -> Result<RunStat
     adam.m = m;
     adam.v = v;
     adam.t = meta.adam_steps;
+    let ema = if cfg.ema_decay > 0.0 {
+        let em = TrainModel::from_weights(&model.to_weights()?, cfg.seed)?;
+        for (name, var) in em.named_vars() {
+            if !name.starts_with("decoder") {
+                var.set(&get(&format!("ema.{name}"))?).map_err(ce)?;
+            }
+        }
+        Some(em)
+    } else {
+        None
+    };
     let best = match meta.best {
-        Some((scores, epoch)) => {
+        Some(b) => {
             let bm = TrainModel::new(cfg.encoder(), num_cameras, cfg.seed)?;
             for (name, var) in bm.named_vars() {
                 if !name.starts_with("decoder") {
@@ -134,13 +171,21 @@ pub fn load(dir: &Path, cfg: &TrainConfig, num_cameras: usize) -> Result<RunStat
             }
             let mut bm = bm;
             bm.fourier = model.fourier.clone();
-            Some((bm.to_weights()?, scores, epoch))
+            Some(Best {
+                weights: bm.to_weights()?,
+                epoch: b.epoch,
+                val: b.val,
+                label_free: b.label_free,
+            })
         }
         None => None,
     };
     Ok(RunState {
         model,
         adam,
+        ema,
+        pseudo: meta.pseudo,
+        stage_steps: meta.stage_steps,
         epoch: meta.epoch,
         history: meta.history,
         best,

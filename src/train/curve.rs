@@ -1,5 +1,6 @@
-//! The training curve as a self-contained SVG: losses per epoch (left) and validation ACC and
-//! IPAA-100 per validated epoch (right).
+//! The training curve as a self-contained SVG: losses per epoch (left) and, per scored epoch,
+//! the label-free score (expected ACC on held-out frames) beside the labelled validation ACC
+//! and IPAA-100 when both exist (right).
 use std::fmt::Write as _;
 use std::path::Path;
 
@@ -63,22 +64,30 @@ pub fn render_svg(history: &[EpochRecord], title: &str) -> String {
         })
         .collect();
     panel(&mut s, 0.0, "training loss", &series, None);
-    let val: Vec<&EpochRecord> = history.iter().filter(|r| r.val.is_some()).collect();
-    let acc: Vec<(f64, f64)> = val
+    let acc: Vec<(f64, f64)> = history
         .iter()
         .filter_map(|r| r.val.map(|v| (r.epoch as f64, 100.0 * v.acc)))
         .collect();
-    let ipaa: Vec<(f64, f64)> = val
+    let ipaa: Vec<(f64, f64)> = history
         .iter()
         .filter_map(|r| r.val.map(|v| (r.epoch as f64, 100.0 * v.ipaa100)))
         .collect();
-    panel(
-        &mut s,
-        W,
-        "validation (%)",
-        &[("ACC", "#1f77b4", acc), ("IPAA-100", "#ff7f0e", ipaa)],
-        Some((0.0, 100.0)),
-    );
+    let free: Vec<(f64, f64)> = history
+        .iter()
+        .filter_map(|r| {
+            r.label_free
+                .map(|v| (r.epoch as f64, 100.0 * v.expected_acc))
+        })
+        .collect();
+    let mut scores: Vec<Series> = Vec::new();
+    if !free.is_empty() {
+        scores.push(("label-free (expected ACC)", "#2ca02c", free));
+    }
+    if !acc.is_empty() {
+        scores.push(("val ACC", "#1f77b4", acc));
+        scores.push(("val IPAA-100", "#ff7f0e", ipaa));
+    }
+    panel(&mut s, W, "scores (%)", &scores, Some((0.0, 100.0)));
     s.push_str("</svg>\n");
     s
 }
@@ -205,6 +214,7 @@ mod tests {
             syn: 1.0,
             pro: 1.0 / e as f32,
             edge: 1.0,
+            id: 0.0,
             train_seconds: e as f64,
             val: val.then_some(ValScores {
                 acc: 0.5 + 0.1 * e as f64,
@@ -213,11 +223,19 @@ mod tests {
                 recall: 0.9,
                 threshold: 0.4,
             }),
+            label_free: val.then_some(crate::train::label_free::LabelFreeScores {
+                sync_acc: 0.9,
+                cycle: 0.8,
+                expected_acc: 0.4 + 0.1 * e as f64,
+                threshold: 0.3,
+                consistent: 0.5,
+            }),
         };
         let h = vec![rec(1, false), rec(2, true), rec(3, false), rec(4, true)];
         let svg = render_svg(&h, "run <1>");
         assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
-        assert_eq!(svg.matches("<polyline").count(), 6);
+        assert_eq!(svg.matches("<polyline").count(), 7);
+        assert!(svg.contains("label-free"));
         assert!(svg.contains("run &lt;1&gt;"));
         assert!(!svg.contains("NaN"));
         // An empty history still renders.

@@ -81,6 +81,17 @@ impl TrainingSet {
         })
     }
 
+    /// Removes the last `n` frames (all of them when `n` exceeds the count) and returns them
+    /// as their own set: frames held out from training for label-free scoring.
+    pub fn split_off_tail(&mut self, n: usize) -> TrainingSet {
+        let at = self.images.len().saturating_sub(n);
+        TrainingSet {
+            scene: self.scene.clone(),
+            frame_ids: self.frame_ids.split_off(at),
+            images: self.images.split_off(at),
+        }
+    }
+
     /// Number of frames.
     pub fn num_frames(&self) -> usize {
         self.images.len()

@@ -9,6 +9,7 @@ use rand::seq::index::sample;
 use crate::core::matching::{euclidean_distances, hungarian, normalized_distance};
 use crate::train::data::{Image, TrainingSet};
 use crate::train::model::{TrainModel, ce};
+use crate::train::pseudo::PseudoLabels;
 use crate::train::sampler::Triplet;
 use crate::{Error, Result};
 
@@ -51,6 +52,8 @@ pub struct StepStats {
     pub pro: f32,
     /// Edge triplet loss.
     pub edge: f32,
+    /// **[ours]** Pseudo-identity loss (self-training stage; 0 without labels).
+    pub id: f32,
     /// Triplets that contributed (non-empty images).
     pub triplets: usize,
 }
@@ -238,13 +241,52 @@ pub fn reprojection_loss(pred: &Tensor, target: &[[f32; 4]], weights: &[f32]) ->
     run().map_err(ce)
 }
 
+/// `((anchor row, positive row), (anchor row, negative row))` of one pseudo-identity triplet.
+type IdTriplet = ((u32, u32), (u32, u32));
+
+/// **[ours]** The pseudo-identity triplets of one anchor/positive image pair (same frame):
+/// for each anchor box with a label that the positive image also has, the positive is that
+/// box and the negative the positive image's other box nearest to the anchor (hardest, on
+/// the detached embeddings). Row indices are offset by `oa` / `ob`.
+fn identity_triplets(
+    host: &ndarray::Array2<f32>,
+    (oa, na): (usize, usize),
+    (ob, nb): (usize, usize),
+    label_a: impl Fn(usize) -> Option<u32>,
+    label_b: impl Fn(usize) -> Option<u32>,
+    out: &mut Vec<IdTriplet>,
+) {
+    if nb < 2 {
+        return;
+    }
+    for a in 0..na {
+        let Some(l) = label_a(a) else { continue };
+        let Some(b) = (0..nb).find(|&b| label_b(b) == Some(l)) else {
+            continue;
+        };
+        let ra = host.row(oa + a);
+        let dist = |k: usize| {
+            let d = &ra - &host.row(ob + k);
+            d.dot(&d)
+        };
+        let neg = (0..nb)
+            .filter(|&k| k != b)
+            .min_by(|&x, &y| dist(x).total_cmp(&dist(y)))
+            .expect("nb >= 2");
+        let (ra, rb, rn) = ((oa + a) as u32, (ob + b) as u32, (ob + neg) as u32);
+        out.push(((ra, rb), (ra, rn)));
+    }
+}
+
 /// Computes the total loss of one step over `triplets` (skipping those with an empty image).
+/// With `pseudo` labels (the self-training stage) the pseudo-identity triplet loss is added.
 /// Returns `None` when every triplet was skipped.
 pub fn step_loss<R: Rng>(
     model: &TrainModel,
     set: &TrainingSet,
     triplets: &[Triplet],
     opts: &LossOptions,
+    pseudo: Option<&PseudoLabels>,
     rng: &mut R,
 ) -> Result<Option<(Tensor, StepStats)>> {
     let img = |r: crate::train::sampler::ImageRef| &set.images[r.frame][r.camera];
@@ -293,8 +335,20 @@ pub fn step_loss<R: Rng>(
     let mut edge = HingeSet::new(t);
     let mut edge_boxes_all: Vec<[f32; 4]> = Vec::new();
     let mut edge_cams: Vec<u32> = Vec::new();
+    let mut id_triplets = Vec::new();
     for (ti, (tr, o)) in kept.iter().zip(&offsets).enumerate() {
         let (ia, ip, ineg) = (img(tr.anchor), img(tr.positive), img(tr.negative));
+        if let Some(pl) = pseudo {
+            let (a, p) = (tr.anchor, tr.positive);
+            identity_triplets(
+                &host,
+                (o[0], ia.boxes.len()),
+                (o[1], ip.boxes.len()),
+                |k| pl.get(a.frame, a.camera, k),
+                |k| pl.get(p.frame, p.camera, k),
+                &mut id_triplets,
+            );
+        }
         let view = |start: usize, n: usize| host.slice(s![start..start + n, ..]);
         let va = view(o[0], ia.boxes.len());
         let mut sides: Vec<Vec<(u32, u32)>> = Vec::with_capacity(2);
@@ -332,13 +386,26 @@ pub fn step_loss<R: Rng>(
         let e = model.forward(&edge_boxes_all, &edge_cams)?.embedding;
         edge.loss(&e, t)?
     };
-    let total = (&l_syn + &l_pro).and_then(|x| x + &l_edge).map_err(ce)?;
+    let l_id = if id_triplets.is_empty() {
+        Tensor::zeros((), candle_core::DType::F32, &model.device).map_err(ce)?
+    } else {
+        let mut id = HingeSet::new(id_triplets.len());
+        for (k, (pos, neg)) in id_triplets.iter().enumerate() {
+            id.add(k, &[*pos], &[*neg]);
+        }
+        id.loss(&emb, id_triplets.len())?
+    };
+    let total = (&l_syn + &l_pro)
+        .and_then(|x| x + &l_edge)
+        .and_then(|x| x + &l_id)
+        .map_err(ce)?;
     let scalar = |x: &Tensor| x.to_scalar::<f32>().map_err(ce);
     let stats = StepStats {
         total: scalar(&total)?,
         syn: scalar(&l_syn)?,
         pro: scalar(&l_pro)?,
         edge: scalar(&l_edge)?,
+        id: scalar(&l_id)?,
         triplets: t,
     };
     Ok(Some((total, stats)))

@@ -5,7 +5,10 @@
 //! - [`sampler`]: anchor/positive/negative triplets.
 //! - [`model`]: the candle encoder + decoder, convertible to [`crate::model::EncoderWeights`].
 //! - [`losses`]: synchronization, re-projection and edge losses, batched over triplets.
+//! - [`pseudo`]: **[ours]** pseudo-identity labels from confident identities (self-training).
 //! - [`adam`]: the optimiser, with checkpointable state.
+//! - [`label_free`]: **[ours]** scores on held-out unlabelled frames that choose the epoch
+//!   and the threshold without labels.
 //! - [`calibrate`]: **[ours]** label-free `P(same person | distance)` for a trained encoder.
 
 pub mod adam;
@@ -14,8 +17,10 @@ pub mod checkpoint;
 pub mod clean;
 pub mod curve;
 pub mod data;
+pub mod label_free;
 pub mod losses;
 pub mod model;
+pub mod pseudo;
 pub mod sampler;
 pub mod trainer;
 pub mod validate;

@@ -1,6 +1,7 @@
-//! The training loop: batches of triplets, Adam with the step schedule (lr × 0.1 at 3/4),
-//! progress bar, periodic validation with threshold selection and best-model keeping,
-//! checkpoints and resume. Deterministic in the seed on one machine.
+//! The training loop: batches of triplets, Adam with a learning-rate schedule (the paper's
+//! step, or warm-up and cosine decay), an optional exponential moving average of the weights,
+//! progress bar, periodic scoring (label-free on held-out frames and/or labelled validation)
+//! with best-model keeping, checkpoints and resume. Deterministic in the seed on one machine.
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -13,9 +14,12 @@ use crate::model::{EncoderConfig, EncoderWeights};
 use crate::train::adam::Adam;
 use crate::train::checkpoint;
 use crate::train::data::TrainingSet;
+use crate::train::label_free::{LabelFreeScorer, LabelFreeScores};
 use crate::train::losses::{LossOptions, StepStats, step_loss};
 use crate::train::model::{TrainModel, ce};
+use crate::train::pseudo::{PseudoLabels, PseudoOptions, pseudo_labels};
 use crate::train::sampler::{MIN_FRAMES, TripletSampler};
+use crate::train::validate::CandleEncoder;
 use crate::{Error, Result};
 
 /// Everything that shapes a training run.
@@ -33,10 +37,31 @@ pub struct TrainConfig {
     pub epochs: usize,
     /// Triplets per optimiser step.
     pub triplets_per_step: usize,
-    /// Adam learning rate.
+    /// Adam learning rate (the peak of the schedule).
     pub lr: f64,
-    /// Fraction of training after which the learning rate is multiplied by 0.1.
+    /// Fraction of training after which the learning rate is multiplied by 0.1
+    /// ([`LrSchedule::Step`] only).
     pub lr_drop_at: f64,
+    /// **[ours]** How the learning rate changes over training.
+    #[serde(default)]
+    pub schedule: LrSchedule,
+    /// **[ours]** Fraction of training over which the learning rate ramps up linearly from 0.
+    #[serde(default)]
+    pub warmup: f64,
+    /// **[ours]** Decay of the exponential moving average of the encoder weights, per step
+    /// (0 = off). The average is what is scored and exported.
+    #[serde(default)]
+    pub ema_decay: f64,
+    /// **[ours]** Epochs of the self-training stage after `epochs` (0 = none): training goes
+    /// on from the best first-stage weights with the pseudo-identity loss added.
+    #[serde(default)]
+    pub self_train_epochs: usize,
+    /// **[ours]** Peak learning rate of the self-training stage (same schedule as the first).
+    #[serde(default = "self_train_lr")]
+    pub self_train_lr: f64,
+    /// **[ours]** Which first-stage identities become pseudo-labels.
+    #[serde(default)]
+    pub pseudo: PseudoOptions,
     /// Edge pairs per matching (0 = all unique unordered edges).
     pub max_edges: usize,
     /// Appearance weight (used only when boxes carry appearance vectors).
@@ -67,6 +92,12 @@ impl Default for TrainConfig {
             triplets_per_step: 1,
             lr: 1e-4,
             lr_drop_at: 0.75,
+            schedule: LrSchedule::Step,
+            warmup: 0.0,
+            ema_decay: 0.0,
+            self_train_epochs: 0,
+            self_train_lr: self_train_lr(),
+            pseudo: PseudoOptions::default(),
             max_edges: 0,
             alpha: 0.1,
             pair_fraction: 1.0,
@@ -78,6 +109,62 @@ impl Default for TrainConfig {
 }
 
 impl TrainConfig {
+    /// **[ours]** The recipe `crossview train` uses by default: it learns from detector boxes
+    /// in minutes on one core (BENCHMARKS.md, "Training"). [`TrainConfig::default`] is the
+    /// paper's.
+    pub fn recommended() -> Self {
+        TrainConfig {
+            fourier_features: 32,
+            camera_dim: 32,
+            width: 64,
+            triplets_per_step: 8,
+            lr: 1e-3,
+            lr_drop_at: 1.0,
+            schedule: LrSchedule::Step,
+            warmup: 0.02,
+            ema_decay: 0.999,
+            epochs: 1100,
+            self_train_epochs: 300,
+            max_edges: 16,
+            val_every: 25,
+            ..TrainConfig::default()
+        }
+    }
+}
+
+/// **[ours]** Learning-rate schedules.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LrSchedule {
+    /// The paper's: constant, × 0.1 after `lr_drop_at` of training.
+    #[default]
+    Step,
+    /// Cosine decay from `lr` to `lr / 100` after the warm-up.
+    Cosine,
+}
+
+impl TrainConfig {
+    /// The learning rate at `progress` ∈ [0, 1] of training.
+    pub fn lr_at(&self, progress: f64) -> f64 {
+        let f = progress.clamp(0.0, 1.0);
+        if self.warmup > 0.0 && f < self.warmup {
+            return self.lr * (f / self.warmup).max(0.01);
+        }
+        match self.schedule {
+            LrSchedule::Step if f >= self.lr_drop_at => self.lr * 0.1,
+            LrSchedule::Step => self.lr,
+            LrSchedule::Cosine => {
+                let x = if self.warmup < 1.0 {
+                    (f - self.warmup) / (1.0 - self.warmup)
+                } else {
+                    1.0
+                };
+                let lo = self.lr * 0.01;
+                lo + (self.lr - lo) * 0.5 * (1.0 + (std::f64::consts::PI * x).cos())
+            }
+        }
+    }
+
     /// The encoder shape.
     pub fn encoder(&self) -> EncoderConfig {
         EncoderConfig {
@@ -109,6 +196,12 @@ impl TrainConfig {
         }
         if !(0.0..=1.0).contains(&self.lr_drop_at) {
             return Err(Error::invalid("train.lr_drop_at", "must be within [0, 1]"));
+        }
+        if !(0.0..1.0).contains(&self.warmup) {
+            return Err(Error::invalid("train.warmup", "must be within [0, 1)"));
+        }
+        if !(0.0..1.0).contains(&self.ema_decay) {
+            return Err(Error::invalid("train.ema_decay", "must be within [0, 1)"));
         }
         Ok(())
     }
@@ -155,10 +248,51 @@ pub struct EpochRecord {
     pub pro: f32,
     /// Edge loss.
     pub edge: f32,
+    /// **[ours]** Pseudo-identity loss (self-training stage).
+    #[serde(default)]
+    pub id: f32,
     /// Seconds of training so far (excluding validation).
     pub train_seconds: f64,
     /// Validation at the end of this epoch, when run.
     pub val: Option<ValScores>,
+    /// Label-free scores at the end of this epoch, when run.
+    #[serde(default)]
+    pub label_free: Option<LabelFreeScores>,
+}
+
+/// What chooses the exported epoch and threshold.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Select {
+    /// The label-free score on held-out frames (no labels needed).
+    #[default]
+    LabelFree,
+    /// Labelled validation (ACC, then IPAA-100).
+    Labelled,
+}
+
+/// How a run is scored while it trains: none, label-free, labelled, or both (one chooses).
+#[derive(Default)]
+pub struct Scoring<'a> {
+    /// Label-free scorer over frames held out from training.
+    pub label_free: Option<&'a LabelFreeScorer>,
+    /// Labelled validation.
+    pub validator: Option<&'a mut dyn Validator>,
+    /// What chooses the exported weights (falls back to the other score, then the last epoch).
+    pub select: Select,
+}
+
+/// The weights kept so far and why.
+#[derive(Debug, Clone)]
+pub struct Best {
+    /// Encoder weights.
+    pub weights: EncoderWeights,
+    /// Their epoch.
+    pub epoch: usize,
+    /// Their validation scores, when validated.
+    pub val: Option<ValScores>,
+    /// Their label-free scores, when scored.
+    pub label_free: Option<LabelFreeScores>,
 }
 
 /// Where and how often to checkpoint.
@@ -175,10 +309,14 @@ pub struct CheckpointOptions {
 /// The result of a run.
 #[derive(Debug, Clone)]
 pub struct TrainOutcome {
-    /// The weights to export: the best validated ones when validation ran, else the last.
+    /// The weights to export: the best scored ones when scoring ran, else the last.
     pub weights: EncoderWeights,
-    /// Scores of `weights` (when validated).
+    /// Validation scores of `weights` (when validated).
     pub best: Option<ValScores>,
+    /// Label-free scores of `weights` (when scored).
+    pub label_free: Option<LabelFreeScores>,
+    /// What chose `weights` (`None`: nothing scored, the last epoch).
+    pub selected_by: Option<Select>,
     /// Epoch of `weights`.
     pub best_epoch: usize,
     /// Per-epoch history.
@@ -195,22 +333,42 @@ pub struct RunState {
     pub model: TrainModel,
     /// Optimiser.
     pub adam: Adam,
+    /// The moving average of the weights (when `ema_decay > 0`).
+    pub ema: Option<TrainModel>,
     /// Completed epochs.
     pub epoch: usize,
     /// History so far.
     pub history: Vec<EpochRecord>,
-    /// Best validated weights, scores and epoch.
-    pub best: Option<(EncoderWeights, ValScores, usize)>,
+    /// Best scored weights so far.
+    pub best: Option<Best>,
+    /// The pseudo-identity labels of the self-training stage, once it started.
+    pub pseudo: Option<PseudoLabels>,
+    /// Optimiser steps of earlier stages (each stage starts a fresh optimiser).
+    pub stage_steps: u64,
     /// Seconds of training so far.
     pub train_seconds: f64,
 }
 
-/// Trains on `set` with `cfg`; validates with `validator` every `cfg.val_every` epochs and at
-/// the end. `progress` shows a progress bar on stderr.
+/// Trains on `set` with `cfg`; scores with `scoring` every `cfg.val_every` epochs and at the
+/// end, keeping the best weights by `scoring.select`. `progress` shows a progress bar on
+/// stderr.
 pub fn train(
     set: &TrainingSet,
     cfg: &TrainConfig,
-    mut validator: Option<&mut dyn Validator>,
+    scoring: Scoring<'_>,
+    ckpt: &CheckpointOptions,
+    progress: bool,
+) -> Result<TrainOutcome> {
+    train_from(set, cfg, None, scoring, ckpt, progress)
+}
+
+/// [`train`] starting from `init` (an exported encoder of the same shape and cameras, e.g. to
+/// fine-tune a model on a new recording) instead of a fresh initialisation.
+pub fn train_from(
+    set: &TrainingSet,
+    cfg: &TrainConfig,
+    init: Option<&EncoderWeights>,
+    mut scoring: Scoring<'_>,
     ckpt: &CheckpointOptions,
     progress: bool,
 ) -> Result<TrainOutcome> {
@@ -229,22 +387,40 @@ pub fn train(
             st
         }
         _ => {
-            let model = TrainModel::new(cfg.encoder(), set.num_cameras(), cfg.seed)?;
+            let model = match init {
+                Some(w) if w.config != cfg.encoder() || w.num_cameras != set.num_cameras() => {
+                    return Err(Error::Training(format!(
+                        "initial model is {:?} for {} cameras, the run wants {:?} for {}",
+                        w.config,
+                        w.num_cameras,
+                        cfg.encoder(),
+                        set.num_cameras()
+                    )));
+                }
+                Some(w) => TrainModel::from_weights(w, cfg.seed)?,
+                None => TrainModel::new(cfg.encoder(), set.num_cameras(), cfg.seed)?,
+            };
             let adam = Adam::new(model.named_vars(), cfg.lr)?;
+            let ema = (cfg.ema_decay > 0.0)
+                .then(|| TrainModel::from_weights(&model.to_weights()?, cfg.seed))
+                .transpose()?;
             RunState {
                 model,
                 adam,
+                ema,
                 epoch: 0,
                 history: Vec::new(),
                 best: None,
+                pseudo: None,
+                stage_steps: 0,
                 train_seconds: 0.0,
             }
         }
     };
     let tps = cfg.triplets_per_step;
     let steps_per_epoch = set.num_frames().div_ceil(tps);
-    let total_steps = (steps_per_epoch * cfg.epochs) as u64;
-    let drop_epoch = (cfg.epochs as f64 * cfg.lr_drop_at).round() as usize;
+    let epochs = cfg.epochs + cfg.self_train_epochs;
+    let total_steps = (steps_per_epoch * epochs) as u64;
     let opts = LossOptions {
         max_edges: cfg.max_edges,
         alpha: cfg.alpha,
@@ -264,13 +440,29 @@ pub fn train(
     } else {
         ProgressBar::hidden()
     };
-    while st.epoch < cfg.epochs {
+    let mut last_score = String::new();
+    while st.epoch < epochs {
         let epoch = st.epoch + 1;
-        let dropped = match cfg.max_train_seconds {
-            Some(budget) => st.train_seconds >= budget * cfg.lr_drop_at,
-            None => st.epoch >= drop_epoch,
+        if epoch > cfg.epochs && st.pseudo.is_none() {
+            start_self_training(&mut st, set, cfg)?;
+            bar.println(format!(
+                "self-training: {} of {} training boxes pseudo-labelled",
+                st.pseudo.as_ref().map_or(0, PseudoLabels::labelled),
+                set.num_boxes()
+            ));
+        }
+        let progress_now = match cfg.max_train_seconds {
+            Some(budget) => st.train_seconds / budget,
+            None if epoch > cfg.epochs => {
+                (st.epoch - cfg.epochs) as f64 / cfg.self_train_epochs as f64
+            }
+            None => st.epoch as f64 / cfg.epochs as f64,
         };
-        st.adam.lr = if dropped { cfg.lr * 0.1 } else { cfg.lr };
+        st.adam.lr = if epoch > cfg.epochs {
+            cfg.lr_at(progress_now) * cfg.self_train_lr / cfg.lr
+        } else {
+            cfg.lr_at(progress_now)
+        };
         let out_of_time = |secs: f64| cfg.max_train_seconds.is_some_and(|b| secs >= b);
         let started = Instant::now();
         let mut rng = ChaCha8Rng::seed_from_u64(mix(cfg.seed, epoch as u64));
@@ -279,7 +471,14 @@ pub fn train(
         let mut n = 0usize;
         for chunk in order.chunks(tps) {
             let triplets: Vec<_> = chunk.iter().map(|&p| sampler.sample(p, &mut rng)).collect();
-            if let Some((loss, s)) = step_loss(&st.model, set, &triplets, &opts, &mut rng)? {
+            if let Some((loss, s)) = step_loss(
+                &st.model,
+                set,
+                &triplets,
+                &opts,
+                st.pseudo.as_ref(),
+                &mut rng,
+            )? {
                 if !s.total.is_finite() {
                     return Err(Error::Training(format!(
                         "loss became {} at epoch {epoch}; lower the learning rate",
@@ -288,10 +487,14 @@ pub fn train(
                 }
                 let grads = loss.backward().map_err(ce)?;
                 st.adam.step(&grads)?;
+                if let Some(ema) = &st.ema {
+                    update_ema(ema, &st.model, cfg.ema_decay, st.adam.t)?;
+                }
                 sums.total += s.total;
                 sums.syn += s.syn;
                 sums.pro += s.pro;
                 sums.edge += s.edge;
+                sums.id += s.id;
                 n += 1;
             }
             bar.inc(1);
@@ -304,24 +507,33 @@ pub fn train(
             syn: sums.syn / k,
             pro: sums.pro / k,
             edge: sums.edge / k,
+            id: sums.id / k,
             train_seconds: st.train_seconds,
             val: None,
+            label_free: None,
         };
-        bar.set_message(format!(
-            "epoch {epoch} loss {:.3} (syn {:.3} pro {:.3} edge {:.3})",
-            rec.total, rec.syn, rec.pro, rec.edge
-        ));
-        let last = epoch == cfg.epochs || out_of_time(st.train_seconds);
+        let last = epoch == epochs || out_of_time(st.train_seconds);
         let due = last || (cfg.val_every > 0 && epoch % cfg.val_every == 0);
-        if let (true, Some(v)) = (due, validator.as_deref_mut()) {
-            let scores = v.validate(&st.model)?;
-            bar.println(format!(
-                "epoch {epoch}: val ACC {:.2} IPAA-100 {:.2} (threshold {:.1}) after {:.0}s",
-                100.0 * scores.acc,
-                100.0 * scores.ipaa100,
-                scores.threshold,
-                st.train_seconds
-            ));
+        let scored_model = st.ema.as_ref().unwrap_or(&st.model);
+        if due && let Some(scorer) = scoring.label_free {
+            // Part of the run's cost (it chooses the exported model): counted as training time.
+            let scoring_started = Instant::now();
+            let (lf, _) = scorer.score(&mut CandleEncoder::new(scored_model))?;
+            st.train_seconds += scoring_started.elapsed().as_secs_f64();
+            rec.train_seconds = st.train_seconds;
+            tracing::info!(
+                epoch,
+                expected_acc = lf.expected_acc,
+                sync_acc = lf.sync_acc,
+                cycle = lf.cycle,
+                consistent = lf.consistent,
+                threshold = lf.threshold,
+                "label-free score"
+            );
+            rec.label_free = Some(lf);
+        }
+        if due && let Some(v) = scoring.validator.as_deref_mut() {
+            let scores = v.validate(scored_model)?;
             tracing::info!(
                 epoch,
                 acc = scores.acc,
@@ -331,21 +543,37 @@ pub fn train(
                 "validation"
             );
             rec.val = Some(scores);
-            if st
-                .best
-                .as_ref()
-                .is_none_or(|(_, b, _)| scores.better_than(b))
-            {
-                st.best = Some((st.model.to_weights()?, scores, epoch));
+        }
+        if due {
+            last_score = score_message(&rec);
+            if !last_score.is_empty() {
+                bar.println(format!(
+                    "epoch {epoch}: {last_score} after {:.0}s",
+                    st.train_seconds
+                ));
+            }
+            if improves(&rec, st.best.as_ref(), scoring.select) {
+                st.best = Some(Best {
+                    weights: scored_model.to_weights()?,
+                    epoch,
+                    val: rec.val,
+                    label_free: rec.label_free,
+                });
             }
         }
+        bar.set_message(format!(
+            "epoch {epoch} loss {:.3} (syn {:.3} pro {:.3} edge {:.3}) {last_score}",
+            rec.total, rec.syn, rec.pro, rec.edge
+        ));
         tracing::info!(
             epoch,
             loss = rec.total,
             syn = rec.syn,
             pro = rec.pro,
             edge = rec.edge,
+            id = rec.id,
             steps = n,
+            lr = st.adam.lr,
             train_seconds = st.train_seconds,
             "epoch done"
         );
@@ -361,23 +589,141 @@ pub fn train(
         }
     }
     bar.finish_and_clear();
-    let steps = st.adam.t;
-    let (weights, best, best_epoch) = match st.best {
-        Some((w, s, e)) => (w, Some(s), e),
-        None => (st.model.to_weights()?, None, st.epoch),
+    let steps = st.stage_steps + st.adam.t;
+    let selected_by =
+        st.best.as_ref().map(
+            |b| match (scoring.select, b.label_free.is_some(), b.val.is_some()) {
+                (Select::LabelFree, true, _) | (Select::Labelled, _, false) => Select::LabelFree,
+                _ => Select::Labelled,
+            },
+        );
+    let best = match st.best {
+        Some(b) => b,
+        None => Best {
+            weights: st.ema.as_ref().unwrap_or(&st.model).to_weights()?,
+            epoch: st.epoch,
+            val: None,
+            label_free: None,
+        },
     };
     Ok(TrainOutcome {
-        weights,
-        best,
-        best_epoch,
+        weights: best.weights,
+        best: best.val,
+        label_free: best.label_free,
+        selected_by,
+        best_epoch: best.epoch,
         history: st.history,
         steps,
         train_seconds: st.train_seconds,
     })
 }
 
+/// Starts the self-training stage: pseudo-labels from the best first-stage weights (the last
+/// ones when nothing was scored), calibrated on the training frames (none when the frames are
+/// too few to calibrate); training restarts from
+/// those weights (keeping the current decoder) with a fresh optimiser and moving average.
+fn start_self_training(st: &mut RunState, set: &TrainingSet, cfg: &TrainConfig) -> Result<()> {
+    let mut source = match &st.best {
+        Some(b) => b.weights.clone(),
+        None => st.ema.as_ref().unwrap_or(&st.model).to_weights()?,
+    };
+    // A recording too small to calibrate trains its second stage without pseudo-labels.
+    let labels = match crate::train::calibrate::calibrate(&mut source, set, cfg.seed) {
+        Ok(cal) => pseudo_labels(&mut source, set, &cal, &cfg.pseudo)?,
+        Err(e) => {
+            tracing::warn!(error = %e, "self-training without pseudo-labels");
+            PseudoLabels::default()
+        }
+    };
+    tracing::info!(
+        labelled = labels.labelled(),
+        boxes = set.num_boxes(),
+        "self-training: pseudo-identity labels"
+    );
+    let model = TrainModel::from_weights(&source, cfg.seed)?;
+    for ((name, v), (_, cur)) in model.named_vars().into_iter().zip(st.model.named_vars()) {
+        if name.starts_with("decoder") {
+            v.set(cur.as_tensor()).map_err(ce)?;
+        }
+    }
+    st.stage_steps += st.adam.t;
+    st.adam = Adam::new(model.named_vars(), cfg.lr)?;
+    st.ema = (cfg.ema_decay > 0.0)
+        .then(|| TrainModel::from_weights(&source, cfg.seed))
+        .transpose()?;
+    st.model = model;
+    st.pseudo = Some(labels);
+    Ok(())
+}
+
+/// True when the scores in `rec` beat `best` under `select` (label-free: its key; labelled:
+/// ACC then IPAA-100). When the selecting score is missing, the other one decides.
+fn improves(rec: &EpochRecord, best: Option<&Best>, select: Select) -> bool {
+    let Some(best) = best else {
+        return rec.val.is_some() || rec.label_free.is_some();
+    };
+    let by_lf = |a: &LabelFreeScores, b: &LabelFreeScores| a.key() > b.key();
+    let by_val = |a: &ValScores, b: &ValScores| a.better_than(b);
+    match select {
+        Select::LabelFree => match (&rec.label_free, &best.label_free) {
+            (Some(a), Some(b)) => by_lf(a, b),
+            _ => matches!((&rec.val, &best.val), (Some(a), Some(b)) if by_val(a, b)),
+        },
+        Select::Labelled => match (&rec.val, &best.val) {
+            (Some(a), Some(b)) => by_val(a, b),
+            _ => matches!((&rec.label_free, &best.label_free), (Some(a), Some(b)) if by_lf(a, b)),
+        },
+    }
+}
+
+/// The scores of a scored epoch for the progress bar: `"free 93.1 val ACC 93.5 IPAA-100 60.1"`.
+fn score_message(rec: &EpochRecord) -> String {
+    let mut m = String::new();
+    if let Some(lf) = &rec.label_free {
+        m.push_str(&format!(
+            "label-free {:.2} (t {:.1})",
+            100.0 * lf.expected_acc,
+            lf.threshold
+        ));
+    }
+    if let Some(v) = &rec.val {
+        if !m.is_empty() {
+            m.push(' ');
+        }
+        m.push_str(&format!(
+            "val ACC {:.2} IPAA-100 {:.2} (t {:.1})",
+            100.0 * v.acc,
+            100.0 * v.ipaa100,
+            v.threshold
+        ));
+    }
+    m
+}
+
+/// `ema ← β·ema + (1 − β)·model` over the encoder's variables, with the usual warm-up of the
+/// decay (`β_t = min(β, (1 + t) / (10 + t))`) so early averages are not dominated by the
+/// initialisation.
+fn update_ema(ema: &TrainModel, model: &TrainModel, decay: f64, step: u64) -> Result<()> {
+    let t = step as f64;
+    let beta = decay.min((1.0 + t) / (10.0 + t));
+    for ((name, e), (_, v)) in ema.named_vars().into_iter().zip(model.named_vars()) {
+        if name.starts_with("decoder") {
+            continue;
+        }
+        let next = ((e.as_tensor() * beta).map_err(ce)?
+            + (v.as_tensor() * (1.0 - beta)).map_err(ce)?)
+        .map_err(ce)?;
+        e.set(&next.detach()).map_err(ce)?;
+    }
+    Ok(())
+}
+
 fn one() -> f32 {
     1.0
+}
+
+fn self_train_lr() -> f64 {
+    3e-4
 }
 
 /// A per-epoch seed from the run seed (splitmix64 finaliser), so resumed runs draw the same
