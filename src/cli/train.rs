@@ -447,7 +447,7 @@ fn metadata(
         "crossview.selection".into(),
         serde_json::json!({
             "by": match out.selected_by {
-                Some(Select::LabelFree) => "label-free (expected ACC on held-out training frames)",
+                Some(Select::LabelFree) => "label-free (cycle consistency on held-out training frames)",
                 Some(Select::Labelled) => "labelled validation",
                 None => "none (last epoch)",
             },
@@ -542,10 +542,11 @@ fn summary(out: &TrainOutcome, threshold: f32) -> String {
     );
     if let Some(lf) = out.label_free {
         s.push_str(&format!(
-            "; label-free: expected ACC {:.2} sync {:.2} cycle {:.2}",
-            100.0 * lf.expected_acc,
+            "; label-free: cycle {:.2} sync {:.2} (expected decision accuracy {:.2} at {:.1})",
+            100.0 * lf.cycle,
             100.0 * lf.sync_acc,
-            100.0 * lf.cycle
+            100.0 * lf.expected_acc,
+            lf.threshold
         ));
     }
     if let Some(v) = out.best {

@@ -1,6 +1,6 @@
 //! The training curve as a self-contained SVG: losses per epoch (left) and, per scored epoch,
-//! the label-free score (expected ACC on held-out frames) beside the labelled validation ACC
-//! and IPAA-100 when both exist (right).
+//! the label-free selection score (cycle consistency on held-out frames) beside the labelled
+//! validation ACC and IPAA-100 when both exist (right).
 use std::fmt::Write as _;
 use std::path::Path;
 
@@ -74,14 +74,11 @@ pub fn render_svg(history: &[EpochRecord], title: &str) -> String {
         .collect();
     let free: Vec<(f64, f64)> = history
         .iter()
-        .filter_map(|r| {
-            r.label_free
-                .map(|v| (r.epoch as f64, 100.0 * v.expected_acc))
-        })
+        .filter_map(|r| r.label_free.map(|v| (r.epoch as f64, 100.0 * v.key())))
         .collect();
     let mut scores: Vec<Series> = Vec::new();
     if !free.is_empty() {
-        scores.push(("label-free (expected ACC)", "#2ca02c", free));
+        scores.push(("label-free (cycle consistency)", "#2ca02c", free));
     }
     if !acc.is_empty() {
         scores.push(("val ACC", "#1f77b4", acc));

@@ -29,12 +29,13 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
+use crate::core::association::ViewPair;
 use crate::core::calibration::Calibration;
 use crate::core::matching::{euclidean_distances, hungarian};
 use crate::model::Encoder;
 use crate::train::calibrate::embed_all;
 use crate::train::data::TrainingSet;
-use crate::train::pseudo::{PseudoOptions, pseudo_labels};
+use crate::train::pseudo::{PseudoOptions, frame_labels, frame_pairs, identity_config};
 use crate::{Error, Result};
 
 /// The threshold on `S` when the held-out frames cannot be calibrated.
@@ -116,11 +117,6 @@ impl LabelFreeScorer {
         })
     }
 
-    /// Number of held-out frames.
-    pub fn num_frames(&self) -> usize {
-        self.set.num_frames()
-    }
-
     /// The scores of `encoder`, plus the calibration fitted on the held-out frames. When the
     /// frames hold too few pairs for a calibration, the calibrated scores are 0 and the
     /// threshold is the reference 0.4 (SPEC §3's WILDTRACK setting).
@@ -132,60 +128,50 @@ impl LabelFreeScorer {
     ) -> Result<(LabelFreeScores, Option<Calibration>)> {
         let emb = embed_all(encoder, &self.set)?;
         let cams = self.set.num_cameras();
-        let mut pairs: Vec<PairSample> = Vec::new();
+        // Each frame's box counts and camera-pair matchings, kept for the calibrated scores.
+        let mut frames: Vec<(Vec<usize>, Vec<ViewPair>)> = Vec::with_capacity(emb.len());
         let (mut sync_d, mut shift_d) = (Vec::new(), Vec::new());
         let (mut wins, mut trials) = (0usize, 0usize);
         let (mut agree, mut chains) = (0usize, 0usize);
         // assignment[i][j]: for each box of camera i, its Hungarian partner in camera j.
         let mut assignment: Vec<Vec<Vec<Option<usize>>>> = vec![vec![Vec::new(); cams]; cams];
         for (t, frame) in emb.iter().enumerate() {
-            let view = |c: usize| frame.view(c).expect("every camera has rows");
             for row in assignment.iter_mut() {
                 row.iter_mut().for_each(Vec::clear);
             }
-            for i in 0..cams {
-                for j in i + 1..cams {
-                    let (a, b) = (view(i), view(j));
-                    if a.nrows() == 0 || b.nrows() == 0 {
+            let (sizes, pairs) = frame_pairs(frame);
+            for p in &pairs {
+                let (i, j) = (p.cam_a, p.cam_b);
+                let assigned = &p.matching.assignment;
+                let mut fwd = vec![None; sizes[i]];
+                let mut back = vec![None; sizes[j]];
+                for q in assigned {
+                    fwd[q.a] = Some(q.b);
+                    back[q.b] = Some(q.a);
+                    sync_d.push(q.distance);
+                }
+                let h_sync =
+                    assigned.iter().map(|q| q.distance).sum::<f32>() / assigned.len() as f32;
+                // Both directions: i's views against j's shifted views, and j's against i's.
+                for (anchor, other) in [(i, j), (j, i)] {
+                    let Some(t2) = self.shift[t][other] else {
+                        continue;
+                    };
+                    let a = frame.view(anchor).expect("every camera has rows");
+                    let neg = emb[t2].view(other).expect("every camera has rows");
+                    if neg.nrows() == 0 {
                         continue;
                     }
-                    let dg = euclidean_distances(a, b);
-                    let pairs_ij = hungarian(dg.view());
-                    let max = dg.iter().copied().fold(0.0f32, f32::max) + 1e-12;
-                    let mut fwd = vec![None; a.nrows()];
-                    let mut back = vec![None; b.nrows()];
-                    let mut sample = PairSample {
-                        assigned: Vec::with_capacity(pairs_ij.len()),
-                        unassigned: a.nrows().abs_diff(b.nrows()),
-                    };
-                    for &(x, y) in &pairs_ij {
-                        fwd[x] = Some(y);
-                        back[y] = Some(x);
-                        sync_d.push(dg[(x, y)]);
-                        sample.assigned.push((dg[(x, y)], 1.0 - dg[(x, y)] / max));
+                    let dn = euclidean_distances(a, neg);
+                    let pn = hungarian(dn.view());
+                    shift_d.extend(pn.iter().map(|&(x, y)| dn[(x, y)]));
+                    trials += 1;
+                    if h_sync < mean_assigned(&dn, &pn) {
+                        wins += 1;
                     }
-                    let h_sync = mean_assigned(&dg, &pairs_ij);
-                    // Both directions: i's views against j's shifted views, and j's against i's.
-                    for (anchor, other, oc) in [(a, j, j), (b, i, i)] {
-                        let Some(t2) = self.shift[t][oc] else {
-                            continue;
-                        };
-                        let neg = emb[t2].view(other).expect("every camera has rows");
-                        if neg.nrows() == 0 {
-                            continue;
-                        }
-                        let dn = euclidean_distances(anchor, neg);
-                        let pn = hungarian(dn.view());
-                        shift_d.extend(pn.iter().map(|&(x, y)| dn[(x, y)]));
-                        trials += 1;
-                        if h_sync < mean_assigned(&dn, &pn) {
-                            wins += 1;
-                        }
-                    }
-                    assignment[i][j] = fwd;
-                    assignment[j][i] = back;
-                    pairs.push(sample);
                 }
+                assignment[i][j] = fwd;
+                assignment[j][i] = back;
             }
             for i in 0..cams {
                 for j in 0..cams {
@@ -206,17 +192,22 @@ impl LabelFreeScorer {
                     }
                 }
             }
+            frames.push((sizes, pairs));
         }
         let cal = Calibration::fit(&sync_d, &shift_d).ok();
         let (expected_acc, threshold, labelled) = match &cal {
             Some(cal) => {
-                let (e, t) = expected_acc(&pairs, cal, &self.thresholds);
+                let (e, t) = expected_acc(&frames, cal, &self.thresholds);
                 let opts = PseudoOptions::default();
-                (
-                    e,
-                    t,
-                    pseudo_labels(encoder, &self.set, cal, &opts)?.labelled(),
-                )
+                let cfg = identity_config(cal, &opts);
+                let labelled = frames
+                    .iter()
+                    .map(|(sizes, pairs)| {
+                        let row = frame_labels(sizes, pairs, &cfg, &opts);
+                        row.iter().flatten().flatten().count()
+                    })
+                    .sum();
+                (e, t, labelled)
             }
             None => (0.0, FALLBACK_THRESHOLD, 0),
         };
@@ -234,21 +225,22 @@ impl LabelFreeScorer {
     }
 }
 
-/// One image pair's Hungarian pairs as `(raw distance, S)`, and its boxes left unassigned.
-struct PairSample {
-    assigned: Vec<(f32, f32)>,
-    unassigned: usize,
-}
-
 /// The best expected decision accuracy over `thresholds` and the threshold reaching it (the
 /// lowest on ties). Boxes left without a Hungarian partner count as right decisions.
-fn expected_acc(pairs: &[PairSample], cal: &Calibration, thresholds: &[f32]) -> (f64, f32) {
+fn expected_acc(
+    frames: &[(Vec<usize>, Vec<ViewPair>)],
+    cal: &Calibration,
+    thresholds: &[f32],
+) -> (f64, f32) {
     let mut num = vec![0.0f64; thresholds.len()];
     let mut den = 0.0f64;
-    for p in pairs {
-        den += p.unassigned as f64;
-        num.iter_mut().for_each(|n| *n += p.unassigned as f64);
-        for &(d, s) in &p.assigned {
+    for p in frames.iter().flat_map(|(_, pairs)| pairs) {
+        let (n, m) = p.matching.scores.dim();
+        let unassigned = n.abs_diff(m) as f64;
+        den += unassigned;
+        num.iter_mut().for_each(|v| *v += unassigned);
+        for q in &p.matching.assignment {
+            let (d, s) = (q.distance, q.score);
             let q = cal.probability(d) as f64;
             den += 1.0;
             for (n, &t) in num.iter_mut().zip(thresholds) {

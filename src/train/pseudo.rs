@@ -8,6 +8,7 @@ use std::sync::Arc;
 use serde::{Deserialize, Serialize};
 
 use crate::Result;
+use crate::core::FrameEmbeddings;
 use crate::core::association::ViewPair;
 use crate::core::calibration::Calibration;
 use crate::core::identity::{IdentityConfig, build_identities};
@@ -64,38 +65,65 @@ pub fn pseudo_labels(
     cal: &Calibration,
     opts: &PseudoOptions,
 ) -> Result<PseudoLabels> {
-    let cfg = IdentityConfig::new(Some(Arc::new(cal.clone())), opts.match_threshold);
-    let emb = embed_all(encoder, set)?;
-    let cams = set.num_cameras();
-    let mut labels = Vec::with_capacity(emb.len());
-    for (t, frame) in emb.iter().enumerate() {
-        let sizes: Vec<usize> = (0..cams).map(|c| set.images[t][c].boxes.len()).collect();
-        let mut pairs = Vec::new();
-        for i in 0..cams {
-            for j in i + 1..cams {
-                let (a, b) = (frame.view(i), frame.view(j));
-                let (Some(a), Some(b)) = (a, b) else { continue };
-                if a.nrows() == 0 || b.nrows() == 0 {
-                    continue;
-                }
-                pairs.push(ViewPair {
-                    cam_a: i,
-                    cam_b: j,
-                    matching: match_views(a, b, None, None, 0.0, 0.0),
-                });
-            }
-        }
-        let mut row: Vec<Vec<Option<u32>>> = sizes.iter().map(|&n| vec![None; n]).collect();
-        let mut next = 0u32;
-        for id in build_identities(&sizes, &pairs, &cfg) {
-            if id.members.len() >= opts.min_views && id.confidence >= opts.min_confidence {
-                for &(c, b) in &id.members {
-                    row[c][b] = Some(next);
-                }
-                next += 1;
-            }
-        }
-        labels.push(row);
-    }
+    let cfg = identity_config(cal, opts);
+    let labels = embed_all(encoder, set)?
+        .iter()
+        .map(|frame| {
+            let (sizes, pairs) = frame_pairs(frame);
+            frame_labels(&sizes, &pairs, &cfg, opts)
+        })
+        .collect();
     Ok(PseudoLabels { labels })
+}
+
+/// The identity step's configuration for pseudo-labels under `cal`.
+pub(crate) fn identity_config(cal: &Calibration, opts: &PseudoOptions) -> IdentityConfig {
+    IdentityConfig::new(Some(Arc::new(cal.clone())), opts.match_threshold)
+}
+
+/// One frame's box count per camera and the SPEC §3 matching (geometry only, nothing
+/// dropped) of every camera pair with boxes on both sides.
+pub(crate) fn frame_pairs(frame: &FrameEmbeddings) -> (Vec<usize>, Vec<ViewPair>) {
+    let cams = frame.num_views();
+    let sizes: Vec<usize> = (0..cams)
+        .map(|c| frame.view(c).map_or(0, |v| v.nrows()))
+        .collect();
+    let mut pairs = Vec::new();
+    for i in 0..cams {
+        for j in i + 1..cams {
+            let (Some(a), Some(b)) = (frame.view(i), frame.view(j)) else {
+                continue;
+            };
+            if a.nrows() == 0 || b.nrows() == 0 {
+                continue;
+            }
+            pairs.push(ViewPair {
+                cam_a: i,
+                cam_b: j,
+                matching: match_views(a, b, None, None, 0.0, 0.0),
+            });
+        }
+    }
+    (sizes, pairs)
+}
+
+/// One frame's labels (`[camera][box]`): its identities that span at least `opts.min_views`
+/// cameras with confidence `opts.min_confidence` or more, numbered from 0.
+pub(crate) fn frame_labels(
+    sizes: &[usize],
+    pairs: &[ViewPair],
+    cfg: &IdentityConfig,
+    opts: &PseudoOptions,
+) -> Vec<Vec<Option<u32>>> {
+    let mut row: Vec<Vec<Option<u32>>> = sizes.iter().map(|&n| vec![None; n]).collect();
+    let mut next = 0u32;
+    for id in build_identities(sizes, pairs, cfg) {
+        if id.members.len() >= opts.min_views && id.confidence >= opts.min_confidence {
+            for &(c, b) in &id.members {
+                row[c][b] = Some(next);
+            }
+            next += 1;
+        }
+    }
+    row
 }

@@ -108,6 +108,17 @@ impl Default for TrainConfig {
     }
 }
 
+/// **[ours]** Learning-rate schedules.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LrSchedule {
+    /// The paper's: constant, × 0.1 after `lr_drop_at` of training.
+    #[default]
+    Step,
+    /// Cosine decay from `lr` to `lr / 100` after the warm-up.
+    Cosine,
+}
+
 impl TrainConfig {
     /// **[ours]** The recipe `crossview train` uses by default: it learns from detector boxes
     /// in minutes on one core (BENCHMARKS.md, "Training"). [`TrainConfig::default`] is the
@@ -130,20 +141,7 @@ impl TrainConfig {
             ..TrainConfig::default()
         }
     }
-}
 
-/// **[ours]** Learning-rate schedules.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum LrSchedule {
-    /// The paper's: constant, × 0.1 after `lr_drop_at` of training.
-    #[default]
-    Step,
-    /// Cosine decay from `lr` to `lr / 100` after the warm-up.
-    Cosine,
-}
-
-impl TrainConfig {
     /// The learning rate at `progress` ∈ [0, 1] of training.
     pub fn lr_at(&self, progress: f64) -> f64 {
         let f = progress.clamp(0.0, 1.0);
@@ -676,14 +674,15 @@ fn improves(rec: &EpochRecord, best: Option<&Best>, select: Select) -> bool {
     }
 }
 
-/// The scores of a scored epoch for the progress bar: `"free 93.1 val ACC 93.5 IPAA-100 60.1"`.
+/// The scores of a scored epoch for the progress bar, e.g.
+/// `"label-free cycle 41.09 sync 87.32 val ACC 88.29 IPAA-100 42.59 (t 0.5)"`.
 fn score_message(rec: &EpochRecord) -> String {
     let mut m = String::new();
     if let Some(lf) = &rec.label_free {
         m.push_str(&format!(
-            "label-free {:.2} (t {:.1})",
-            100.0 * lf.expected_acc,
-            lf.threshold
+            "label-free cycle {:.2} sync {:.2}",
+            100.0 * lf.cycle,
+            100.0 * lf.sync_acc
         ));
     }
     if let Some(v) = &rec.val {
