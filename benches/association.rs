@@ -183,6 +183,34 @@ fn bench<M: Measurement>(c: &mut Criterion<M>, group: &str, dim: usize) {
             }
         })
     });
+    // Worst case for the solver's row reduction: uniform random costs (no clear best match).
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let random: Vec<Array2<f32>> = (0..pairs.len())
+        .map(|_| Array2::from_shape_fn((BOXES, BOXES), |_| rng.random::<f32>()))
+        .collect();
+    g.bench_function("hungarian_21_random_costs", |b| {
+        b.iter(|| {
+            for c in &random {
+                black_box(hungarian(c.view()));
+            }
+        })
+    });
+    // The solver it replaced, as a baseline: `pathfinding::kuhn_munkres` on costs scaled to
+    // integers (2^30 over [0, 1], as the matcher used to).
+    let kuhn_munkres = |costs: &[Array2<f32>]| {
+        for c in costs {
+            let (n, m) = c.dim();
+            let scaled = c.iter().map(|&v| -(v as f64 * (1u64 << 30) as f64) as i64);
+            let w = pathfinding::matrix::Matrix::from_vec(n, m, scaled.collect()).unwrap();
+            black_box(pathfinding::kuhn_munkres::kuhn_munkres(&w));
+        }
+    };
+    g.bench_function("hungarian_21_kuhn_munkres_baseline", |b| {
+        b.iter(|| kuhn_munkres(&costs))
+    });
+    g.bench_function("hungarian_21_random_costs_kuhn_munkres_baseline", |b| {
+        b.iter(|| kuhn_munkres(&random))
+    });
     g.bench_function("identities", |b| {
         b.iter(|| black_box(build_identities(&sizes, black_box(&pairs), &cfg.identity)))
     });

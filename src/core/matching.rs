@@ -4,19 +4,14 @@
 //! The functions are written for the hot path of the server (21 camera pairs per frame for 7
 //! cameras): the distances of all pairs of a frame come from a few large matrix products
 //! (`‖a‖² + ‖b‖² − 2ab`, [`all_pairs_distances`], through the `gemm` crate), normalisation
-//! works in place, and the Hungarian step scales costs to integers once, branch-free, and
-//! runs `pathfinding::kuhn_munkres` on one flat buffer. BENCHMARKS.md has the timings.
+//! works in place, and the assignment step is a shortest-augmenting-path solver
+//! ([`crate::core::lsa`]) that keeps its buffers between calls. BENCHMARKS.md has the timings.
 use std::ops::Range;
 
 use ndarray::{Array1, Array2, ArrayView1, ArrayView2, Zip};
-use pathfinding::kuhn_munkres::{Weights, kuhn_munkres};
 
 /// Added to every normalising maximum so that an all-zero matrix stays finite (SPEC §3).
 pub const NORM_EPS: f32 = 1e-6;
-
-/// Resolution of the integer costs handed to Kuhn–Munkres: the finite cost range is mapped
-/// onto `0..=COST_SCALE`, i.e. about 1e-9 of the range, finer than an `f32` ulp near 1.
-const COST_SCALE: f64 = (1u64 << 30) as f64;
 
 /// One kept match between box `a` of the first view and box `b` of the second, with its
 /// confidence `score = 1 - D[a, b]`.
@@ -342,108 +337,13 @@ pub fn normalized_distance(dg: &Array2<f32>, da: Option<&Array2<f32>>, alpha: f3
     d
 }
 
-/// Integer weights for Kuhn–Munkres (which maximises): `-scaled cost`, stored row-major in
-/// the orientation the solver needs (rows ≤ columns).
-struct IntWeights {
-    rows: usize,
-    cols: usize,
-    data: Vec<i64>,
-}
-
-impl Weights<i64> for IntWeights {
-    fn rows(&self) -> usize {
-        self.rows
-    }
-    fn columns(&self) -> usize {
-        self.cols
-    }
-    fn at(&self, row: usize, col: usize) -> i64 {
-        self.data[row * self.cols + col]
-    }
-    fn neg(&self) -> Self {
-        IntWeights {
-            rows: self.rows,
-            cols: self.cols,
-            data: self.data.iter().map(|v| -v).collect(),
-        }
-    }
-}
-
-/// Converts `cost` to integer weights (negated, so maximising weight = minimising cost).
-///
-/// Finite costs map linearly onto `0..=COST_SCALE` (min → 0). Non-finite entries get a
-/// fixed, deterministic place: NaN and `+inf` cost `2·COST_SCALE` (worse than every finite
-/// entry), `-inf` costs `-COST_SCALE` (better than every finite entry). The integer matrix
-/// is always finite and bounded, so the solver can neither loop nor overflow.
-fn int_weights(cost: ArrayView2<f32>, transpose: bool) -> IntWeights {
-    let cost = cost.as_standard_layout();
-    let flat = cost.as_slice().expect("standard layout is contiguous");
-    let (lo, range) = match finite_range(flat) {
-        Some((lo, hi)) => (lo as f64, hi as f64 - lo as f64),
-        None => (0.0, 0.0),
-    };
-    let scale = if range > 0.0 { COST_SCALE / range } else { 0.0 };
-    // Finite costs land in [0, COST_SCALE]; adding 2^52 puts the rounded integer in the low
-    // mantissa bits of the f64 (round to nearest), read back without a libm call or a
-    // branch, so the loop compiles to vector code.
-    const MAGIC: f64 = (1u64 << 52) as f64;
-    let to_int = |v: f32| -> i64 {
-        let x = if v.is_finite() {
-            (v as f64 - lo) * scale
-        } else {
-            0.0
-        };
-        let c = ((x + MAGIC).to_bits() - MAGIC.to_bits()) as i64;
-        let c = if v.is_finite() {
-            c
-        } else if v == f32::NEG_INFINITY {
-            -(COST_SCALE as i64)
-        } else {
-            2 * COST_SCALE as i64
-        };
-        -c
-    };
-    let (n, m) = cost.dim();
-    let (rows, cols) = if transpose { (m, n) } else { (n, m) };
-    let data = if transpose {
-        (0..m)
-            .flat_map(|c| flat[c..].iter().step_by(m))
-            .map(|&v| to_int(v))
-            .collect()
-    } else {
-        flat.iter().map(|&v| to_int(v)).collect()
-    };
-    IntWeights { rows, cols, data }
-}
-
-/// Minimum-cost one-to-one assignment on a finite cost matrix: `min(n, m)` pairs `(row, col)`,
-/// sorted by row.
-///
-/// Costs are scaled to integers (resolution ~1e-9 of the finite cost range) for
-/// `pathfinding::kuhn_munkres`; the matrix is transposed when it has more rows than
-/// columns. An empty side gives no pairs. Non-finite entries never hang or panic: NaN and
-/// `+inf` are treated as worse than every finite cost and `-inf` as better (see
-/// `int_weights`); callers validate their inputs before this point anyway.
+/// Minimum-cost one-to-one assignment: `min(n, m)` pairs `(row, col)`, sorted by row
+/// ([`crate::core::lsa::assign`], on this thread's reusable solver). An empty side gives
+/// no pairs. Non-finite entries never hang or panic: NaN and `+inf` are treated as worse
+/// than every finite cost and `-inf` as better; callers validate their inputs before this
+/// point anyway.
 pub fn hungarian(cost: ArrayView2<f32>) -> Vec<(usize, usize)> {
-    let (n, m) = cost.dim();
-    if n == 0 || m == 0 {
-        return Vec::new();
-    }
-    let transpose = n > m;
-    let weights = int_weights(cost, transpose);
-    let (_, assign) = kuhn_munkres(&weights);
-    if transpose {
-        // assign[col] = row; rebuild sorted by row.
-        let mut pairs: Vec<(usize, usize)> = assign
-            .into_iter()
-            .enumerate()
-            .map(|(c, r)| (r, c))
-            .collect();
-        pairs.sort_unstable();
-        pairs
-    } else {
-        assign.into_iter().enumerate().collect()
-    }
+    crate::core::lsa::assign(cost)
 }
 
 /// Full SPEC §3 matching of two views from their embeddings (and optional appearance

@@ -5,6 +5,7 @@ pub mod association;
 pub mod calibration;
 pub mod embeddings;
 pub mod identity;
+pub mod lsa;
 pub mod matching;
 pub mod types;
 
