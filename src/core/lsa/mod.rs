@@ -1,19 +1,22 @@
-//! Rectangular linear sum assignment by shortest augmenting paths: the Jonker–Volgenant
-//! family's algorithm as Crouse describes it ("On implementing 2D rectangular assignment
-//! algorithms", IEEE TAES 2016) and as SciPy's `linear_sum_assignment` implements it
-//! (`scipy/optimize/rectangular_lsap/rectangular_lsap.cpp`).
+//! Linear sum assignment: the minimum-cost one-to-one assignment of a cost matrix's rows and
+//! columns. Square problems go to LAPJV ([`jv`]), rectangular ones to shortest augmenting
+//! paths from a row reduction ([`sap`], SciPy's algorithm); both were measured against
+//! each other and against `pathfinding::kuhn_munkres` on the matcher's real cost matrices
+//! (BENCHMARKS.md).
 //!
 //! Ours rather than a crate's because it is the hot loop of every frame (21 solves for 7
 //! cameras): the solver keeps its buffers between calls ([`Solver`], one per thread behind
 //! [`assign`]), works on the `f32` cost matrix the matcher already has, and gives every
-//! input, NaN and infinities included, a valid answer instead of an error. It is about an
-//! order of magnitude faster than `pathfinding::kuhn_munkres` on 35 × 35 costs (BENCHMARKS.md);
-//! `pathfinding` stays the oracle its tests compare against.
+//! input, NaN and infinities included, a valid answer instead of an error. `pathfinding`
+//! stays the oracle its tests compare against.
 use std::cell::RefCell;
 
 use ndarray::ArrayView2;
 
-/// Marks "no row / no column" in the solver's index arrays.
+mod jv;
+mod sap;
+
+/// Marks "no row / no column" in the solvers' index arrays.
 const NONE: usize = usize::MAX;
 
 /// A reusable assignment solver: the buffers of one solve are kept for the next, so a
@@ -22,20 +25,8 @@ const NONE: usize = usize::MAX;
 pub struct Solver {
     /// The cost matrix as solved: `rows ≤ cols`, row-major, `f64`, every entry finite.
     cost: Vec<f64>,
-    /// Row and column dual variables.
-    u: Vec<f64>,
-    v: Vec<f64>,
-    /// Length of the shortest alternating path found so far to each column.
-    shortest: Vec<f64>,
-    /// Row preceding each column on its shortest path.
-    path: Vec<usize>,
-    col4row: Vec<usize>,
-    row4col: Vec<usize>,
-    /// Rows and columns reached by the current search.
-    seen_rows: Vec<bool>,
-    seen_cols: Vec<bool>,
-    /// Columns not yet reached by the current search.
-    remaining: Vec<usize>,
+    square: jv::Jv,
+    rectangular: sap::Sap,
 }
 
 impl Solver {
@@ -61,42 +52,39 @@ impl Solver {
         let transpose = n > m;
         let (rows, cols) = if transpose { (m, n) } else { (n, m) };
         self.load(cost, transpose);
-        self.reset(rows, cols);
-        self.row_reduction(rows, cols);
-        for cur in 0..rows {
-            if self.col4row[cur] != NONE {
-                continue;
+        let col_of: &[usize] = if rows == 1 {
+            // One row: its cheapest column (the first of equals).
+            let best = self
+                .cost
+                .iter()
+                .enumerate()
+                .fold(
+                    (0, f64::INFINITY),
+                    |b, (j, &c)| if c < b.1 { (j, c) } else { b },
+                )
+                .0;
+            self.square.x.clear();
+            self.square.x.push(best);
+            &self.square.x
+        } else if rows < cols || self.rectangular.start(&self.cost, rows, cols) * 4 <= rows {
+            // Rectangular, or square with a clear best column for most rows (the row
+            // reduction did most of the work): shortest augmenting paths for the rest.
+            if rows < cols {
+                self.rectangular.start(&self.cost, rows, cols);
             }
-            let (sink, min_val) = self.shortest_path(cur, rows, cols);
-            // Dual update (Crouse's step 3).
-            self.u[cur] += min_val;
-            for i in 0..rows {
-                if self.seen_rows[i] && i != cur {
-                    self.u[i] += min_val - self.shortest[self.col4row[i]];
-                }
-            }
-            for j in 0..cols {
-                if self.seen_cols[j] {
-                    self.v[j] -= min_val - self.shortest[j];
-                }
-            }
-            // Augment along the path ending at `sink`.
-            let mut j = sink;
-            loop {
-                let i = self.path[j];
-                self.row4col[j] = i;
-                std::mem::swap(&mut self.col4row[i], &mut j);
-                if i == cur {
-                    break;
-                }
-            }
-        }
+            self.rectangular.finish(&self.cost, rows, cols);
+            &self.rectangular.col4row
+        } else {
+            // Square with many conflicts: LAPJV's reductions settle them faster.
+            self.square.solve(&self.cost, rows);
+            &self.square.x
+        };
         if transpose {
             // Row `r` of the solved matrix is column `r` of the caller's.
-            out.extend((0..rows).map(|r| (self.col4row[r], r)));
+            out.extend((0..rows).map(|r| (col_of[r], r)));
             out.sort_unstable();
         } else {
-            out.extend((0..rows).map(|r| (r, self.col4row[r])));
+            out.extend((0..rows).map(|r| (r, col_of[r])));
         }
     }
 
@@ -143,96 +131,6 @@ impl Solver {
             self.cost.extend(flat.iter().map(|&v| v as f64));
         } else {
             self.cost.extend(flat.iter().map(|&v| sanitize(v)));
-        }
-    }
-
-    fn reset(&mut self, rows: usize, cols: usize) {
-        let fill = |v: &mut Vec<usize>, len| {
-            v.clear();
-            v.resize(len, NONE);
-        };
-        fill(&mut self.col4row, rows);
-        fill(&mut self.row4col, cols);
-        fill(&mut self.path, cols);
-        fill(&mut self.remaining, cols);
-        for (x, len) in [(&mut self.u, rows), (&mut self.v, cols)] {
-            x.clear();
-            x.resize(len, 0.0);
-        }
-        self.shortest.resize(cols, f64::INFINITY);
-        self.seen_rows.resize(rows, false);
-        self.seen_cols.resize(cols, false);
-    }
-
-    /// Starting point: every row's dual is its smallest cost (all reduced costs ≥ 0, column
-    /// duals 0, as the rectangular problem needs for its free columns), and a row whose
-    /// cheapest column no earlier row took gets it at zero reduced cost. On cost matrices with
-    /// a clear best match per row, most rows end here and only the conflicts are searched.
-    fn row_reduction(&mut self, rows: usize, cols: usize) {
-        for i in 0..rows {
-            let row = &self.cost[i * cols..(i + 1) * cols];
-            let (mut best, mut min) = (0, row[0]);
-            for (j, &c) in row.iter().enumerate().skip(1) {
-                if c < min {
-                    (best, min) = (j, c);
-                }
-            }
-            self.u[i] = min;
-            if self.row4col[best] == NONE {
-                self.row4col[best] = i;
-                self.col4row[i] = best;
-            }
-        }
-    }
-
-    /// Dijkstra-like search from the free row `start` for the shortest augmenting path in
-    /// the reduced costs: returns its free end column and its length.
-    fn shortest_path(&mut self, start: usize, rows: usize, cols: usize) -> (usize, f64) {
-        // Filled in reverse so that a constant matrix is solved by the identity (as SciPy).
-        for (k, r) in self.remaining.iter_mut().enumerate() {
-            *r = cols - k - 1;
-        }
-        self.seen_rows[..rows].fill(false);
-        self.seen_cols[..cols].fill(false);
-        self.shortest[..cols].fill(f64::INFINITY);
-        let mut num_remaining = cols;
-        let mut min_val = 0.0;
-        let mut i = start;
-        loop {
-            self.seen_rows[i] = true;
-            let row = &self.cost[i * cols..(i + 1) * cols];
-            let ui = self.u[i];
-            let mut index = 0;
-            let mut lowest = f64::INFINITY;
-            for (k, &j) in self.remaining[..num_remaining].iter().enumerate() {
-                let r = min_val + row[j] - ui - self.v[j];
-                if r < self.shortest[j] {
-                    self.path[j] = i;
-                    self.shortest[j] = r;
-                }
-                let s = self.shortest[j];
-                // Among equal candidates prefer a free column: it ends the search.
-                if s < lowest || (s == lowest && self.row4col[j] == NONE) {
-                    lowest = s;
-                    index = k;
-                }
-            }
-            let j = self.remaining[index];
-            // With finite costs `lowest` is finite; should rounding ever make it otherwise,
-            // the first remaining column is taken from this row, which keeps the path (and
-            // so the result) a valid assignment.
-            if lowest.is_finite() {
-                min_val = lowest;
-            } else {
-                self.path[j] = i;
-            }
-            self.seen_cols[j] = true;
-            num_remaining -= 1;
-            self.remaining[index] = self.remaining[num_remaining];
-            match self.row4col[j] {
-                NONE => return (j, min_val),
-                next => i = next,
-            }
         }
     }
 }
@@ -385,6 +283,31 @@ mod tests {
         #[test]
         fn optimal_on_wide_integer_ranges(cost in int_matrix(40, 1 << 20)) {
             prop_assert_eq!(total(&cost, &assign(cost.view())), oracle_min(&cost));
+        }
+
+        #[test]
+        fn both_algorithms_are_optimal_on_square_problems(
+            cost in (2usize..=12).prop_flat_map(|n| {
+                proptest::collection::vec(0..6i32, n * n).prop_map(move |v| {
+                    Array2::from_shape_vec((n, n), v.into_iter().map(|x| x as f32).collect())
+                        .unwrap()
+                })
+            })
+        ) {
+            let n = cost.nrows();
+            let flat: Vec<f64> = cost.iter().map(|&v| v as f64).collect();
+            let best = oracle_min(&cost);
+            let mut square = jv::Jv::default();
+            square.solve(&flat, n);
+            let pairs: Vec<_> = square.x.iter().copied().enumerate().collect();
+            prop_assert!(is_valid(&pairs, n, n));
+            prop_assert_eq!(total(&cost, &pairs), best);
+            let mut rect = sap::Sap::default();
+            rect.start(&flat, n, n);
+            rect.finish(&flat, n, n);
+            let pairs: Vec<_> = rect.col4row.iter().copied().enumerate().collect();
+            prop_assert!(is_valid(&pairs, n, n));
+            prop_assert_eq!(total(&cost, &pairs), best);
         }
 
         #[test]
