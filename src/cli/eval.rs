@@ -14,7 +14,7 @@ use crate::core::association::{
 };
 use crate::core::{CameraSpec, Frame, SceneSpec};
 use crate::eval::driver::evaluate_settings_on;
-use crate::eval::dump::{read_dump, write_dump};
+use crate::eval::dump::{read_dump, write_dump_on};
 use crate::eval::metrics::compute_metrics;
 use crate::eval::parallel::{DEFAULT_WINDOW, map_ordered, worker_count};
 use crate::eval::report::{EvalReport, TableRow, format_table};
@@ -278,7 +278,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         .write(path)?;
     }
     if let Some(path) = &args.dump_pairs {
-        write_dump(path, &runs[0].records)?;
+        write_dump_on(path, &runs[0].records, workers)?;
         tracing::info!(path = %path.display(), pairs = runs[0].records.len(), "pair dump written");
     }
     Ok(())

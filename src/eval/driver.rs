@@ -120,7 +120,8 @@ pub fn evaluate_settings(
 /// [`evaluate_settings`] with the frames dealt to one worker thread per encoder
 /// ([`map_ordered`]); every encoder must be the same model (one ONNX Runtime session each).
 /// The records are collected in frame order, so the runs are identical to one encoder's
-/// whatever the number of workers. Panics when `encoders` is empty.
+/// whatever the number of workers; the settings' metrics are then computed on as many
+/// threads. Panics when `encoders` is empty.
 pub fn evaluate_settings_on(
     encoders: &mut [&mut dyn Encoder],
     recording: &Recording,
@@ -170,12 +171,26 @@ pub fn evaluate_settings_on(
             Ok(())
         },
     )?;
+    // The settings' metrics are independent (each sorts all its scores for AP): computed on
+    // as many threads as there are workers, one setting each at a time.
+    let mut metrics = Vec::with_capacity(settings.len());
+    let mut threads = vec![(); encoders.len()];
+    map_ordered(
+        &records,
+        &mut threads,
+        1,
+        |_, _, r| Ok::<_, Error>(compute_metrics(r)),
+        |_, m| {
+            metrics.push(m);
+            Ok(())
+        },
+    )?;
     Ok(settings
         .iter()
         .zip(records)
         .zip(stats)
-        .map(|((&(mode, threshold), records), identities)| {
-            let metrics = compute_metrics(&records);
+        .zip(metrics)
+        .map(|(((&(mode, threshold), records), identities), metrics)| {
             tracing::debug!(%mode, threshold, pairs = metrics.pairs, "evaluated");
             EvalRun {
                 mode,
