@@ -79,7 +79,7 @@ for T in $PY_THREADS; do
     --threads "$T" --repeat "$REPEAT" --include-reading)
   PY_BEST="$PY_BEST$PY"$'\n'
 done
-"$VENV/bin/python" - "$WORKERS" "$R1" "$RW" "$LOG1" "$LOGW" "$PY_BEST" <<'PY'
+"$VENV/bin/python" - "$WORKERS" "$R1" "$RW" "$LOG1" "$LOGW" "$PY_BEST" "$WORK/out_w$WORKERS.jsonl" <<'PY'
 import json, sys
 workers = int(sys.argv[1])
 r1, rw = float(sys.argv[2]), float(sys.argv[3])
@@ -94,6 +94,9 @@ for p in pys:
     print(f"python reference, {p['threads']} ORT thread(s), reading included: "
           f"{p['best_pass_frames_per_second']:8.1f} frames/s (best of {len(p['pass_seconds'])} passes); "
           f"kept matches {p['kept_matches']}")
+with open(sys.argv[7]) as f:
+    kept = sum(len(p["matches"]) for line in f for p in json.loads(line)["pairs"])
+print(f"kept pairwise matches: rust {kept}, python {pys[0]['kept_matches']}")
 best = max(pys, key=lambda p: p["best_pass_frames_per_second"])
 ratio = (frames / rw) / best["best_pass_frames_per_second"]
 print(f"ratio: rust --workers {workers} / best python ({best['threads']} thread(s)) = {ratio:.2f}x "
