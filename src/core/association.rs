@@ -151,13 +151,16 @@ pub fn embed_frame(
         let Some(dets) = view else { continue };
         let cam = &scene.cameras[c];
         for (i, d) in dets.iter().enumerate() {
-            d.validate(
-                &format!(
-                    "frame {} camera '{}' detections[{i}]",
-                    frame.frame_id, cam.name
-                ),
-                None,
-            )?;
+            // The field name is only needed for the error: built when the box is invalid.
+            if d.validate("", None).is_err() {
+                d.validate(
+                    &format!(
+                        "frame {} camera '{}' detections[{i}]",
+                        frame.frame_id, cam.name
+                    ),
+                    None,
+                )?;
+            }
             boxes.push(d.normalized(cam));
             cameras.push(c as i64);
         }

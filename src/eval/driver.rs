@@ -7,6 +7,7 @@ use crate::core::identity::identity_matches;
 use crate::core::{Frame, SceneSpec};
 use crate::eval::identities::IdentityStats;
 use crate::eval::metrics::{Metrics, PairRecord, compute_metrics};
+use crate::eval::parallel::{DEFAULT_WINDOW, map_ordered};
 use crate::io::Recording;
 use crate::model::Encoder;
 use crate::{Error, Result};
@@ -113,6 +114,20 @@ pub fn evaluate_settings(
     base: &AssociationConfig,
     settings: &[(Mode, f32)],
 ) -> Result<Vec<EvalRun>> {
+    evaluate_settings_on(&mut [encoder], recording, base, settings)
+}
+
+/// [`evaluate_settings`] with the frames dealt to one worker thread per encoder
+/// ([`map_ordered`]); every encoder must be the same model (one ONNX Runtime session each).
+/// The records are collected in frame order, so the runs are identical to one encoder's
+/// whatever the number of workers; the settings' metrics are then computed on as many
+/// threads. Panics when `encoders` is empty.
+pub fn evaluate_settings_on(
+    encoders: &mut [&mut dyn Encoder],
+    recording: &Recording,
+    base: &AssociationConfig,
+    settings: &[(Mode, f32)],
+) -> Result<Vec<EvalRun>> {
     if settings.is_empty() {
         return Err(Error::invalid("settings", "no evaluation setting given"));
     }
@@ -129,21 +144,53 @@ pub fn evaluate_settings(
     let scene = &recording.scene;
     let mut records: Vec<Vec<PairRecord>> = vec![Vec::new(); settings.len()];
     let mut stats = vec![IdentityStats::default(); settings.len()];
-    for frame in &recording.frames {
+    // Per frame and setting: the image-pair records and the frame's identity scores.
+    let frame_work = |encoder: &mut &mut dyn Encoder, _: usize, frame: &Frame| {
         let ids = frame_ids(scene, frame)?;
-        let embeddings = embed_frame(encoder, scene, frame)?;
-        for (k, cfg) in configs.iter().enumerate() {
-            let assoc = associate_frame(frame, embeddings.clone(), cfg);
-            records[k].extend(pair_records(scene, &ids, &assoc));
-            stats[k].add_frame(&assoc.identities, &ids);
-        }
-    }
+        let embeddings = embed_frame(*encoder, scene, frame)?;
+        Ok(configs
+            .iter()
+            .map(|cfg| {
+                let assoc = associate_frame(frame, embeddings.clone(), cfg);
+                let mut frame_stats = IdentityStats::default();
+                frame_stats.add_frame(&assoc.identities, &ids);
+                (pair_records(scene, &ids, &assoc), frame_stats)
+            })
+            .collect::<Vec<_>>())
+    };
+    map_ordered(
+        &recording.frames,
+        encoders,
+        DEFAULT_WINDOW,
+        frame_work,
+        |_, per_setting| {
+            for (k, (frame_records, frame_stats)) in per_setting.into_iter().enumerate() {
+                records[k].extend(frame_records);
+                stats[k].merge(&frame_stats);
+            }
+            Ok(())
+        },
+    )?;
+    // The settings' metrics are independent (each sorts all its scores for AP): computed on
+    // as many threads as there are workers, one setting each at a time.
+    let mut metrics = Vec::with_capacity(settings.len());
+    let mut threads = vec![(); encoders.len()];
+    map_ordered(
+        &records,
+        &mut threads,
+        1,
+        |_, _, r| Ok::<_, Error>(compute_metrics(r)),
+        |_, m| {
+            metrics.push(m);
+            Ok(())
+        },
+    )?;
     Ok(settings
         .iter()
         .zip(records)
         .zip(stats)
-        .map(|((&(mode, threshold), records), identities)| {
-            let metrics = compute_metrics(&records);
+        .zip(metrics)
+        .map(|(((&(mode, threshold), records), identities), metrics)| {
             tracing::debug!(%mode, threshold, pairs = metrics.pairs, "evaluated");
             EvalRun {
                 mode,
@@ -237,6 +284,34 @@ mod tests {
             .collect();
         assert_eq!(compute_metrics(&ids), both[1].metrics);
         assert_eq!(both[1].identities.frames, 2);
+    }
+
+    #[test]
+    fn several_encoders_give_the_same_runs_as_one() {
+        let mut rec = recording();
+        let frames = rec.frames.clone();
+        rec.frames = (0..9u64)
+            .map(|k| Frame {
+                frame_id: k,
+                ..frames[k as usize % 2].clone()
+            })
+            .collect();
+        let settings = [(Mode::Pairwise, 0.4), (Mode::Identities, 0.3)];
+        let cfg = AssociationConfig::default();
+        let one = evaluate_settings(&mut BottomCentre, &rec, &cfg, &settings).unwrap();
+        let (mut a, mut b, mut c) = (BottomCentre, BottomCentre, BottomCentre);
+        let mut three: Vec<&mut dyn Encoder> = vec![&mut a, &mut b, &mut c];
+        let runs = evaluate_settings_on(&mut three, &rec, &cfg, &settings).unwrap();
+        assert_eq!(runs, one);
+        let ids: Vec<u64> = runs[0].records.iter().map(|r| r.frame_id).collect();
+        assert!(ids.windows(2).all(|w| w[0] <= w[1]), "{ids:?}");
+        // The first frame in order with a missing id is the error, as with one encoder.
+        rec.frames[4].views[0].as_mut().unwrap()[0].id = None;
+        rec.frames[7].views[0].as_mut().unwrap()[0].id = None;
+        let err = evaluate_settings_on(&mut three, &rec, &cfg, &settings)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("frame 4 "), "{err}");
     }
 
     #[test]

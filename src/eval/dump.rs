@@ -5,6 +5,7 @@ use std::io::{BufRead, BufReader, BufWriter, Write};
 use std::path::Path;
 
 use crate::eval::metrics::PairRecord;
+use crate::eval::parallel::{DEFAULT_WINDOW, map_ordered};
 use crate::{Error, Result};
 
 /// Writes `records` to `out`, one JSON object per line.
@@ -22,9 +23,33 @@ pub fn write_pairs<W: Write>(mut out: W, records: &[PairRecord], dest: &str) -> 
 
 /// Writes `records` to the file at `path` (created or truncated).
 pub fn write_dump(path: impl AsRef<Path>, records: &[PairRecord]) -> Result<()> {
+    write_dump_on(path, records, 1)
+}
+
+/// Records formatted per block by one worker of [`write_dump_on`].
+const DUMP_BLOCK: usize = 64;
+
+/// [`write_dump`] with the lines formatted on `workers` threads: blocks of records are dealt
+/// to them ([`map_ordered`]) and written in order, so the file is byte-identical.
+pub fn write_dump_on(path: impl AsRef<Path>, records: &[PairRecord], workers: usize) -> Result<()> {
     let path = path.as_ref();
+    let dest = path.display().to_string();
     let file = File::create(path).map_err(|e| Error::io(path, e))?;
-    write_pairs(BufWriter::new(file), records, &path.display().to_string())
+    let mut out = BufWriter::new(file);
+    let blocks: Vec<&[PairRecord]> = records.chunks(DUMP_BLOCK).collect();
+    let mut threads = vec![(); workers.max(1)];
+    map_ordered(
+        &blocks,
+        &mut threads,
+        DEFAULT_WINDOW,
+        |_, _, block| {
+            let mut buf = Vec::new();
+            write_pairs(&mut buf, block, &dest)?;
+            Ok(buf)
+        },
+        |_, buf| out.write_all(&buf).map_err(|e| Error::io(path, e)),
+    )?;
+    out.flush().map_err(|e| Error::io(path, e))
 }
 
 /// Reads pair records from `input`; `source` names it in errors. Blank lines are skipped;
@@ -82,5 +107,28 @@ mod tests {
         let inconsistent = br#"{"frame_id":1,"camera_a":"a","camera_b":"b","ids_a":[1],"ids_b":[1],"scores":[0.5,0.5],"matches":[]}"#;
         let err = read_pairs(&inconsistent[..], "d").unwrap_err().to_string();
         assert!(err.contains("scores"), "{err}");
+    }
+
+    #[test]
+    fn a_dump_written_by_several_threads_is_the_same_file() {
+        let records: Vec<PairRecord> = (0..300u64)
+            .map(|f| PairRecord {
+                frame_id: f,
+                camera_a: "C1".into(),
+                camera_b: "C2".into(),
+                ids_a: vec![f, 1],
+                ids_b: vec![1],
+                scores: vec![f as f32 / 300.0, 0.5],
+                matches: vec![(1, 0, 0.5)],
+                identity_matches: None,
+            })
+            .collect();
+        let dir = tempfile::tempdir().unwrap();
+        let (one, three) = (dir.path().join("1.jsonl"), dir.path().join("3.jsonl"));
+        write_dump(&one, &records).unwrap();
+        write_dump_on(&three, &records, 3).unwrap();
+        let bytes = std::fs::read(&one).unwrap();
+        assert_eq!(bytes, std::fs::read(&three).unwrap());
+        assert_eq!(read_dump(&three).unwrap(), records);
     }
 }

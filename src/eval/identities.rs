@@ -58,6 +58,19 @@ impl IdentityStats {
         self.frames_exact += usize::from(exact);
     }
 
+    /// Adds the counts of `other` (scores of other frames): the same as having added its frames
+    /// here (every field is a count).
+    pub fn merge(&mut self, other: &IdentityStats) {
+        self.frames += other.frames;
+        self.frames_exact += other.frames_exact;
+        self.identities += other.identities;
+        self.correct += other.correct;
+        for (d, o) in self.deciles.iter_mut().zip(&other.deciles) {
+            d.identities += o.identities;
+            d.correct += o.correct;
+        }
+    }
+
     /// The share of frames whose identities are all right.
     pub fn exact_share(&self) -> f64 {
         if self.frames == 0 {
@@ -152,5 +165,13 @@ mod tests {
         );
         assert_eq!(s.exact_share(), 0.5);
         assert!(s.format().contains("50.0% (1 of 2)"), "{}", s.format());
+        // Frames scored separately and merged count the same as frames added in turn.
+        let (mut a, mut b) = (IdentityStats::default(), IdentityStats::default());
+        a.add_frame(&[ident(0.95, vec![(0, 0), (1, 1)])], &ids);
+        b.add_frame(&[ident(0.35, vec![(0, 1)]), ident(0.3, vec![(1, 0)])], &ids);
+        let mut both = a;
+        both.add_frame(&[ident(0.35, vec![(0, 1)]), ident(0.3, vec![(1, 0)])], &ids);
+        a.merge(&b);
+        assert_eq!(a, both);
     }
 }

@@ -5,12 +5,14 @@
 //! - [`dump`]: the `--dump-pairs` JSON Lines file (write and read back).
 //! - [`identities`]: whole-identity scores (frames exactly right, precision by confidence).
 //! - [`report`]: the printed table and the JSON report.
+//! - [`parallel`]: frames dealt to worker threads, results back in frame order.
 
 pub mod driver;
 pub mod dump;
 pub mod identities;
 pub mod metrics;
+pub mod parallel;
 pub mod report;
 
-pub use driver::{EvalRun, evaluate, evaluate_settings};
+pub use driver::{EvalRun, evaluate, evaluate_settings, evaluate_settings_on};
 pub use metrics::{Metrics, PairRecord, compute_metrics};
