@@ -27,16 +27,7 @@ FRAMES=${FRAMES:-400}
 SEED=${SEED:-11}
 PYTHON=${PYTHON:-python3}
 
-bash scripts/setup.sh
-export ORT_DYLIB_PATH=${ORT_DYLIB_PATH:-$PWD/.cache/onnxruntime/libonnxruntime.so.1.31.1}
-
-VENV=.cache/bench-venv
-if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import numpy, scipy, onnxruntime' 2>/dev/null; then
-  echo "bench: creating $VENV with numpy, scipy, onnxruntime==1.31.1 (PyPI)" >&2
-  "$PYTHON" -m venv "$VENV"
-  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check \
-    numpy scipy "onnxruntime==1.31.1"
-fi
+source bench/python_env.sh
 
 cargo build --release --quiet
 BIN=./target/release/crossview

@@ -28,16 +28,7 @@ PYTHON=${PYTHON:-python3}
 WIDTHS=("$@")
 [ ${#WIDTHS[@]} -gt 0 ] || WIDTHS=(64 768)
 
-bash scripts/setup.sh
-export ORT_DYLIB_PATH=${ORT_DYLIB_PATH:-$PWD/.cache/onnxruntime/libonnxruntime.so.1.31.1}
-
-VENV=.cache/bench-venv
-if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import numpy, scipy, onnxruntime' 2>/dev/null; then
-  echo "compare: creating $VENV with numpy, scipy, onnxruntime==1.31.1 (PyPI)" >&2
-  "$PYTHON" -m venv "$VENV"
-  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check \
-    numpy scipy "onnxruntime==1.31.1"
-fi
+source bench/python_env.sh
 
 cargo build --release --quiet
 BIN=./target/release/crossview

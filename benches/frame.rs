@@ -5,7 +5,8 @@
 //!
 //! Frames: the throughput issue's recording, `crossview simulate --preset wildtrack --people 95
 //! --seed 11 --clean` (7 cameras × ~35 boxes), first 40 frames, cycled; a random encoder
-//! (`crossview model init --width 64 --seed 3`, the defaults otherwise) at widths 64 and 768.
+//! (`crossview model init --width 64 --fourier 32 --camera-dim 32 --seed 3`, the demo
+//! model's architecture and the issue's ≈ 11 MFLOP per frame) at widths 64 and 768.
 use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
@@ -39,6 +40,8 @@ fn bench_frame(c: &mut Criterion) {
     for width in [64usize, 768] {
         let config = EncoderConfig {
             width,
+            fourier_features: 32,
+            camera_dim: 32,
             ..EncoderConfig::default()
         };
         let weights = EncoderWeights::random(scene.cameras.len(), config, 3).unwrap();
