@@ -12,6 +12,7 @@ use serde::Serialize;
 use crate::core::association::{
     AssociationConfig, FrameAssociation, Mode, associate_frame, embed_frame,
 };
+use crate::core::matching::Match;
 use crate::core::{CameraSpec, Frame, SceneSpec};
 use crate::eval::driver::evaluate_settings_on;
 use crate::eval::dump::{read_dump, write_dump_on};
@@ -352,12 +353,7 @@ fn frame_line(
             .map(|p| PairOut {
                 camera_a: cam(p.cam_a),
                 camera_b: cam(p.cam_b),
-                matches: p
-                    .matching
-                    .matches
-                    .iter()
-                    .map(|m| (m.a, m.b, m.score))
-                    .collect(),
+                matches: p.matching.matches.iter().map(Match::triple).collect(),
             })
             .collect(),
     };

@@ -85,6 +85,17 @@ pub struct TrainArgs {
     /// [ours] Fewest cameras a pseudo-labelled identity must span.
     #[arg(long, default_value_t = 3)]
     pub pseudo_views: usize,
+    /// [ours] Recompute the pseudo-labels (and the kept boxes) from the current weights every
+    /// this many self-training epochs (0 = once, from the first stage; measured, not better:
+    /// BENCHMARKS.md, "Training") [default: 0].
+    #[arg(long)]
+    pub pseudo_refresh_every: Option<usize>,
+    /// [ours] Self-training trains only on boxes that its identities place in at least this
+    /// many cameras: boxes no other camera sees are mostly outside the shared area or false
+    /// detections (0 = every box; measured, not better: BENCHMARKS.md, "Training")
+    /// [default: 0].
+    #[arg(long)]
+    pub self_train_keep_views: Option<usize>,
     /// Block width G (an input projection is added when G != 4·F + C) [default: 64; paper 768].
     #[arg(long)]
     pub width: Option<usize>,
@@ -228,7 +239,11 @@ impl TrainArgs {
                 min_confidence: self.pseudo_confidence,
                 min_views: self.pseudo_views,
                 match_threshold: self.match_threshold,
+                keep_views: self.self_train_keep_views.unwrap_or(base.pseudo.keep_views),
             },
+            pseudo_refresh_every: self
+                .pseudo_refresh_every
+                .unwrap_or(base.pseudo_refresh_every),
             max_edges: self.max_edges.unwrap_or(base.max_edges),
             alpha: self.alpha,
             pair_fraction: self.pair_fraction,

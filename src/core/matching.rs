@@ -22,6 +22,13 @@ pub struct Match {
     pub score: f32,
 }
 
+impl Match {
+    /// `(a, b, score)`: the form the dumps and the associate output write.
+    pub fn triple(&self) -> (usize, usize, f32) {
+        (self.a, self.b, self.score)
+    }
+}
+
 /// One Hungarian pair, kept or not: box `a` of the first view with box `b` of the second,
 /// its SPEC §3 confidence `score = 1 - D[a, b]` and its raw geometric embedding distance
 /// `distance = Dg[a, b]` (what a [`crate::core::calibration::Calibration`] reads: unlike `S` it

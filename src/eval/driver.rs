@@ -4,6 +4,7 @@ use crate::core::association::{
     AssociationConfig, FrameAssociation, Mode, associate_frame, embed_frame,
 };
 use crate::core::identity::identity_matches;
+use crate::core::matching::Match;
 use crate::core::{Frame, SceneSpec};
 use crate::eval::identities::IdentityStats;
 use crate::eval::metrics::{Metrics, PairRecord, compute_metrics};
@@ -86,16 +87,11 @@ pub fn pair_records(
                 ids_a: ids_of(p.cam_a).clone(),
                 ids_b: ids_of(p.cam_b).clone(),
                 scores: p.matching.scores.iter().copied().collect(),
-                matches: p
-                    .matching
-                    .matches
-                    .iter()
-                    .map(|m| (m.a, m.b, m.score))
-                    .collect(),
+                matches: p.matching.matches.iter().map(Match::triple).collect(),
                 identity_matches: Some(
                     identity_matches(&assoc.identities, p)
                         .iter()
-                        .map(|m| (m.a, m.b, m.score))
+                        .map(Match::triple)
                         .collect(),
                 ),
             }

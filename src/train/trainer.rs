@@ -62,6 +62,10 @@ pub struct TrainConfig {
     /// **[ours]** Which first-stage identities become pseudo-labels.
     #[serde(default)]
     pub pseudo: PseudoOptions,
+    /// **[ours]** Recompute the pseudo-labels from the current (averaged) weights every this
+    /// many self-training epochs (0 = keep the first stage's labels for the whole stage).
+    #[serde(default)]
+    pub pseudo_refresh_every: usize,
     /// Edge pairs per matching (0 = all unique unordered edges).
     pub max_edges: usize,
     /// Appearance weight (used only when boxes carry appearance vectors).
@@ -98,6 +102,7 @@ impl Default for TrainConfig {
             self_train_epochs: 0,
             self_train_lr: self_train_lr(),
             pseudo: PseudoOptions::default(),
+            pseudo_refresh_every: 0,
             max_edges: 0,
             alpha: 0.1,
             pair_fraction: 1.0,
@@ -439,16 +444,29 @@ pub fn train_from(
         ProgressBar::hidden()
     };
     let mut last_score = String::new();
+    // The self-training stage's boxes and labels when its labels drop boxes.
+    let mut restricted = st.pseudo.as_ref().and_then(|p| p.restrict(set));
     while st.epoch < epochs {
         let epoch = st.epoch + 1;
         if epoch > cfg.epochs && st.pseudo.is_none() {
             start_self_training(&mut st, set, cfg)?;
+            restricted = st.pseudo.as_ref().and_then(|p| p.restrict(set));
             bar.println(format!(
                 "self-training: {} of {} training boxes pseudo-labelled",
                 st.pseudo.as_ref().map_or(0, PseudoLabels::labelled),
                 set.num_boxes()
             ));
+        } else if cfg.pseudo_refresh_every > 0
+            && epoch > cfg.epochs + 1
+            && (epoch - cfg.epochs - 1).is_multiple_of(cfg.pseudo_refresh_every)
+        {
+            refresh_pseudo_labels(&mut st, set, cfg)?;
+            restricted = st.pseudo.as_ref().and_then(|p| p.restrict(set));
         }
+        let (stage_set, stage_labels) = match &restricted {
+            Some((s, l)) => (s, Some(l)),
+            None => (set, st.pseudo.as_ref()),
+        };
         let progress_now = match cfg.max_train_seconds {
             Some(budget) => st.train_seconds / budget,
             None if epoch > cfg.epochs => {
@@ -471,10 +489,10 @@ pub fn train_from(
             let triplets: Vec<_> = chunk.iter().map(|&p| sampler.sample(p, &mut rng)).collect();
             if let Some((loss, s)) = step_loss(
                 &st.model,
-                set,
+                stage_set,
                 &triplets,
                 &opts,
-                st.pseudo.as_ref(),
+                stage_labels,
                 &mut rng,
             )? {
                 if !s.total.is_finite() {
@@ -635,6 +653,7 @@ fn start_self_training(st: &mut RunState, set: &TrainingSet, cfg: &TrainConfig) 
     };
     tracing::info!(
         labelled = labels.labelled(),
+        kept = labels.kept(),
         boxes = set.num_boxes(),
         "self-training: pseudo-identity labels"
     );
@@ -651,6 +670,28 @@ fn start_self_training(st: &mut RunState, set: &TrainingSet, cfg: &TrainConfig) 
         .transpose()?;
     st.model = model;
     st.pseudo = Some(labels);
+    Ok(())
+}
+
+/// Recomputes the self-training stage's pseudo-labels from the current weights (their moving
+/// average when there is one), keeping the optimiser: as the encoder improves, more boxes
+/// join confident multi-view identities. Keeps the old labels when calibration fails.
+fn refresh_pseudo_labels(st: &mut RunState, set: &TrainingSet, cfg: &TrainConfig) -> Result<()> {
+    let mut source = st.ema.as_ref().unwrap_or(&st.model).to_weights()?;
+    match crate::train::calibrate::calibrate(&mut source, set, cfg.seed) {
+        Ok(cal) => {
+            let labels = pseudo_labels(&mut source, set, &cal, &cfg.pseudo)?;
+            tracing::info!(
+                epoch = st.epoch,
+                labelled = labels.labelled(),
+                kept = labels.kept(),
+                boxes = set.num_boxes(),
+                "self-training: pseudo-identity labels refreshed"
+            );
+            st.pseudo = Some(labels);
+        }
+        Err(e) => tracing::warn!(error = %e, "pseudo-labels kept: calibration failed"),
+    }
     Ok(())
 }
 
