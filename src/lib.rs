@@ -1,5 +1,8 @@
 //! crossview: self-supervised, calibration-free multi-view person association (Self-MVA).
 //!
+//! "SPEC §N" in these docs is section N of `docs/method.md`, the project's account of the
+//! method, the metrics and the shared formats.
+//!
 //! Layout:
 //! - [`core`]: the method itself — box features, distances, Hungarian matching, global identities.
 //! - [`model`]: the encoder file contract (SPEC §8): weights, ONNX export, the ONNX Runtime encoder.
