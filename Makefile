@@ -5,7 +5,8 @@ export ORT_DYLIB_PATH
 
 .PHONY: setup build test bench lint fmt demo
 
-## setup: fetch the ONNX Runtime library from PyPI into .cache/ (once)
+## setup: everything the build and the tests need beyond Rust, from PyPI into .cache/ (once):
+## the ONNX Runtime library and the Python gRPC client venv (tests never install anything)
 setup:
 	@bash scripts/setup.sh
 
@@ -16,16 +17,17 @@ build: setup
 test: setup
 	cargo test --all-targets
 
-## bench: criterion benchmarks (encoder, association; see BENCHMARKS.md)
+## bench: criterion benchmarks (association, encoder, frame); every driver: bench/README.md
 bench: setup
-	cargo bench
+	cargo bench -p crossview-bench
 
+## lint: format check and clippy on every crate of the workspace, benchmark drivers included
 lint:
-	cargo fmt --check
-	cargo clippy --all-targets -- -D warnings
+	cargo fmt --all --check
+	cargo clippy --workspace --all-targets -- -D warnings
 
 fmt:
-	cargo fmt
+	cargo fmt --all
 
 .PHONY: loadtest loadtest-check smoke
 
@@ -33,7 +35,7 @@ fmt:
 loadtest:
 	cargo build --release -p crossview-loadtest
 
-## loadtest-check: format, lint and unit-test the load generator (a separate workspace package)
+## loadtest-check: format, lint and unit-test the load generator alone
 loadtest-check:
 	cargo fmt -p crossview-loadtest --check
 	cargo clippy -p crossview-loadtest --all-targets -- -D warnings

@@ -30,7 +30,7 @@ WIDTHS=("$@")
 
 source bench/python_env.sh
 
-cargo build --release --quiet
+cargo build --release --quiet -p crossview -p crossview-bench --bin crossview --bin pipeline
 BIN=./target/release/crossview
 WORK=.cache/bench-compare
 mkdir -p "$WORK"
@@ -52,7 +52,7 @@ for W in "${WIDTHS[@]}"; do
         --width "$W" --fourier 32 --camera-dim 32
     fi
   fi
-  RUST=$(RUST_LOG=warn "$BIN" bench-pipeline --model "$MODEL" --data "$DATA" \
+  RUST=$(RUST_LOG=warn ./target/release/pipeline --model "$MODEL" --data "$DATA" \
     --threads "$THREADS" --workers "$WORKERS" $([ "$IDENTITIES" = 1 ] && echo --identities) \
     --repeat "$REPEAT" --json)
   PY=$("$VENV/bin/python" bench/python_reference.py --model "$MODEL" --data "$DATA" \

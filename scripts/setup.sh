@@ -5,7 +5,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-# ---- serve: Python gRPC client environment (used by tests/serve_python_client.rs) ----------
+# ---- serve: Python gRPC client environment (used by tests/serve/python_client.rs) ----------
 # A project-local virtualenv with grpcio + grpcio-tools, so an integration test can generate a
 # client from proto/crossview/v1/*.proto with a toolchain nobody here wrote. Idempotent. It runs
 # before the ONNX Runtime step because that step exits early once the library is present.

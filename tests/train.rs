@@ -2,18 +2,17 @@
 //! associates far better than an untrained encoder; the exported ONNX file (run through the
 //! real ONNX Runtime) embeds exactly like the model in training; runs are reproducible and
 //! resumable; unusable recordings are refused with clear errors.
-use crossview::Error;
-use crossview::core::{CameraSpec, Detection, Frame, SceneSpec};
-use crossview::io::Recording;
-use crossview::model::{Encoder, ModelMetadata, OnnxEncoder, write_onnx};
-use crossview::train::TrainModel;
-use crossview::train::TrainingSet;
-use crossview::train::label_free::LabelFreeScorer;
-use crossview::train::sampler::MIN_FRAMES;
-use crossview::train::trainer::{
-    CheckpointOptions, Scoring, Select, TrainConfig, Validator, train,
-};
-use crossview::train::validate::{CandleEncoder, EvalValidator, candidate_thresholds};
+use crossview_core::Encoder;
+use crossview_core::Error;
+use crossview_core::{CameraSpec, Detection, Frame, SceneSpec};
+use crossview_data::Recording;
+use crossview_model::{ModelMetadata, OnnxEncoder, write_onnx};
+use crossview_train::TrainModel;
+use crossview_train::TrainingSet;
+use crossview_train::label_free::LabelFreeScorer;
+use crossview_train::sampler::MIN_FRAMES;
+use crossview_train::trainer::{CheckpointOptions, Scoring, Select, TrainConfig, Validator, train};
+use crossview_train::validate::{CandleEncoder, EvalValidator, candidate_thresholds};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -187,7 +186,7 @@ fn self_training_beats_as_long_a_first_stage() {
     );
     assert!(out.history[..60].iter().all(|r| r.id == 0.0));
     let mut v = EvalValidator::new(val, candidate_thresholds(), 0.1).unwrap();
-    let mut acc = |w: &crossview::model::EncoderWeights| {
+    let mut acc = |w: &crossview_model::EncoderWeights| {
         let m = TrainModel::from_weights(w, 0).unwrap();
         v.validate(&m).unwrap().acc
     };

@@ -10,9 +10,10 @@ use tokio::sync::{OwnedSemaphorePermit, mpsc, oneshot};
 use tokio_stream::wrappers::UnboundedReceiverStream;
 use tonic::transport::{Channel, Endpoint};
 
-use crate::proto::{self, association_client::AssociationClient};
 use crate::tracker::{FrameKey, Tracker};
 use crate::transport::{Outgoing, rejection_kind};
+use crossview_api::convert::batch_to_pb;
+use crossview_api::pb::{self as proto, association_client::AssociationClient};
 
 type Pending = Arc<Mutex<VecDeque<(FrameKey, u64, OwnedSemaphorePermit)>>>;
 
@@ -98,7 +99,7 @@ impl GrpcSlot {
 
     /// Queues one batch on the stream without waiting.
     pub fn send(&self, out: Outgoing) {
-        let msg = proto::batch_to_proto(&out.scene, &out.batch);
+        let msg = batch_to_pb(&out.scene, &out.batch);
         let mut q = lock(&self.pending);
         q.push_back((out.key, out.batch.frame_id, out.permit));
         if self.tx.send(msg).is_err() {

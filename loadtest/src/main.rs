@@ -5,7 +5,6 @@ mod driver;
 mod grpc;
 mod http;
 mod promtext;
-mod proto;
 mod recording;
 mod report;
 mod rss;

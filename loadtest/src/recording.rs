@@ -5,8 +5,8 @@ use std::io::BufRead;
 use std::path::Path;
 
 use anyhow::{Context, bail};
-use crossview::core::{Batch, SceneSpec};
-use serde::Deserialize;
+use crossview_core::{Batch, SceneSpec};
+use crossview_data::RecordingReader;
 
 /// One frame of the recording: the batch of every camera that reported it, as
 /// `(camera index, batch)`, sorted by camera index.
@@ -23,11 +23,6 @@ pub struct Workload {
     pub frames: Vec<FrameBatches>,
 }
 
-#[derive(Deserialize)]
-struct Header {
-    scene: SceneSpec,
-}
-
 impl Workload {
     /// Reads a JSONL recording; errors name the file and line.
     pub fn load(path: &Path) -> anyhow::Result<Self> {
@@ -36,45 +31,17 @@ impl Workload {
         Self::from_reader(std::io::BufReader::new(file), &path.display().to_string())
     }
 
-    /// Parses a recording from any reader; `name` labels error messages.
+    /// Parses a recording from any reader with the library's validating reader (header,
+    /// known cameras, no second batch per camera and frame, valid boxes); `name` labels error
+    /// messages.
     pub fn from_reader(reader: impl BufRead, name: &str) -> anyhow::Result<Self> {
-        let mut lines = reader.lines().enumerate();
-        let scene = loop {
-            let Some((i, line)) = lines.next() else {
-                bail!("{name}: empty recording (no scene header line)");
-            };
-            let line = line.with_context(|| format!("{name}:{}: unreadable", i + 1))?;
-            if line.trim().is_empty() {
-                continue;
-            }
-            let h: Header = serde_json::from_str(&line)
-                .with_context(|| format!("{name}:{}: bad scene header", i + 1))?;
-            break h.scene;
-        };
-        if scene.cameras.is_empty() {
-            bail!("{name}: scene '{}' has no cameras", scene.name);
-        }
+        let batches = RecordingReader::new(reader, name)?;
+        let scene = batches.scene().clone();
         let mut frames: BTreeMap<u64, Vec<(usize, Batch)>> = BTreeMap::new();
-        for (i, line) in lines {
-            let line = line.with_context(|| format!("{name}:{}: unreadable", i + 1))?;
-            if line.trim().is_empty() {
-                continue;
-            }
-            let batch: Batch = serde_json::from_str(&line)
-                .with_context(|| format!("{name}:{}: bad batch line", i + 1))?;
-            let cam = scene
-                .camera_index(&batch.camera)
-                .with_context(|| format!("{name}:{}", i + 1))?;
-            let entry = frames.entry(batch.frame_id).or_default();
-            if entry.iter().any(|(c, _)| *c == cam) {
-                bail!(
-                    "{name}:{}: camera '{}' appears twice in frame {}",
-                    i + 1,
-                    batch.camera,
-                    batch.frame_id
-                );
-            }
-            entry.push((cam, batch));
+        for batch in batches {
+            let batch = batch?;
+            let cam = scene.camera_index(&batch.camera)?;
+            frames.entry(batch.frame_id).or_default().push((cam, batch));
         }
         if frames.is_empty() {
             bail!("{name}: recording has a scene header but no batches");
@@ -133,7 +100,7 @@ mod tests {
             r#"{"camera": "a", "frame_id": 1, "detections": []}"#
         );
         let e = Workload::from_reader(dup.as_bytes(), "t").unwrap_err();
-        assert!(format!("{e:#}").contains("twice"), "{e:#}");
+        assert!(format!("{e:#}").contains("duplicate batch"), "{e:#}");
         assert!(Workload::from_reader("".as_bytes(), "t").is_err());
     }
 }

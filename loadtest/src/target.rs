@@ -4,7 +4,7 @@ use std::net::IpAddr;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
-use crossview::core::SceneSpec;
+use crossview_core::SceneSpec;
 
 /// Checks that `url` (http://HOST:PORT) points at a loopback address, unless HOST is in
 /// `allowed` (e.g. a compose service name on a private container network).

@@ -2,7 +2,7 @@
 //! transports.
 use std::sync::Arc;
 
-use crossview::core::Batch;
+use crossview_core::Batch;
 use tokio::sync::OwnedSemaphorePermit;
 
 use crate::tracker::FrameKey;

@@ -9,8 +9,8 @@ use anyhow::Context;
 use clap::Args;
 
 use crate::demo::{DemoConfig, DemoSummary, FrameReport, start_local_server, stream_scene};
-use crate::serve::{ModelSpec, ServeConfig};
-use crate::sim::{DetectorNoise, SimConfig};
+use crossview_data::sim::{DetectorNoise, SimConfig};
+use crossview_serve::{ModelSpec, ServeConfig};
 
 /// Stream a simulated scene through the server and watch the association live.
 #[derive(Debug, Args)]
@@ -164,80 +164,4 @@ fn print_frame(r: &FrameReport) {
     let mut out = std::io::stdout().lock();
     let _ = writeln!(out, "{}", frame_line(r));
     let _ = out.flush();
-}
-
-/// Hidden `crossview bench-pipeline`: in-process frames/s of encoder + pairwise matchings
-/// (+ identities on request) on a recording (the Rust side of `bench/compare_python.sh`).
-#[derive(Debug, Args)]
-pub struct BenchPipelineArgs {
-    /// Model file (SPEC §8 ONNX) for the recording's scene.
-    #[arg(long)]
-    pub model: std::path::PathBuf,
-    /// Recording (SPEC §7 JSONL); ids, if any, are ignored.
-    #[arg(long)]
-    pub data: std::path::PathBuf,
-    /// ONNX Runtime intra-op threads per worker (inter-op is always 1).
-    #[arg(long, default_value_t = 1)]
-    pub threads: usize,
-    /// Worker threads, each with its own encoder session; frames are dealt round-robin.
-    #[arg(long, default_value_t = 1)]
-    pub workers: usize,
-    /// Also build the global identities (work the reference pipeline does not do).
-    #[arg(long)]
-    pub identities: bool,
-    /// Untimed warm-up frames (per worker).
-    #[arg(long, default_value_t = 20)]
-    pub warmup: usize,
-    /// Timed passes over the recording.
-    #[arg(long, default_value_t = 3)]
-    pub repeat: usize,
-    /// Confidence threshold (default: the model's).
-    #[arg(long)]
-    pub threshold: Option<f32>,
-    /// Print one JSON object instead of text.
-    #[arg(long)]
-    pub json: bool,
-}
-
-/// Runs `crossview bench-pipeline`.
-pub fn run_bench_pipeline(args: BenchPipelineArgs) -> anyhow::Result<()> {
-    use crate::model::{EncoderOptions, OnnxEncoder};
-    let recording = crate::io::read_recording(&args.data)?;
-    let mut encoders = (0..args.workers.max(1))
-        .map(|_| {
-            OnnxEncoder::load_with(
-                &args.model,
-                EncoderOptions {
-                    intra_threads: args.threads,
-                },
-            )
-        })
-        .collect::<crate::Result<Vec<_>>>()?;
-    let threshold = args.threshold.unwrap_or(encoders[0].metadata().threshold);
-    let t = crate::demo::throughput::measure(
-        &mut encoders,
-        &recording,
-        threshold,
-        args.identities,
-        args.warmup,
-        args.repeat,
-    )?;
-    if args.json {
-        println!("{}", serde_json::to_string(&t)?);
-    } else {
-        println!(
-            "rust: {:.1} frames/s ({} frames, {:.1} boxes and {:.1} camera pairs per frame, encoder {:.0}% of busy time, {:.2} s wall, {} worker(s) × {} ORT thread(s), identities {}); kept matches (one pass): {}",
-            t.frames_per_second,
-            t.frames,
-            t.boxes_per_frame,
-            t.pairs_per_frame,
-            100.0 * t.encoder_seconds / t.worker_seconds.max(f64::MIN_POSITIVE),
-            t.seconds,
-            t.workers,
-            args.threads,
-            t.identities,
-            t.kept_matches
-        );
-    }
-    Ok(())
 }

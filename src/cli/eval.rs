@@ -9,19 +9,20 @@ use anyhow::{Context, bail};
 use clap::Args;
 use serde::Serialize;
 
-use crate::core::association::{
+use crossview_core::Encoder;
+use crossview_core::association::{
     AssociationConfig, FrameAssociation, Mode, associate_frame, embed_frame,
 };
-use crate::core::matching::Match;
-use crate::core::{CameraSpec, Frame, SceneSpec};
-use crate::eval::driver::evaluate_settings_on;
-use crate::eval::dump::{read_dump, write_dump_on};
-use crate::eval::metrics::compute_metrics;
-use crate::eval::parallel::{DEFAULT_WINDOW, map_ordered, worker_count};
-use crate::eval::report::{EvalReport, TableRow, format_table};
-use crate::io::Recording;
-use crate::io::recording::read_recording;
-use crate::model::{Encoder, EncoderOptions, ModelMetadata, OnnxEncoder};
+use crossview_core::matching::Match;
+use crossview_core::{CameraSpec, Frame, SceneSpec};
+use crossview_data::Recording;
+use crossview_data::recording::read_recording;
+use crossview_eval::driver::evaluate_settings_on;
+use crossview_eval::dump::{read_dump, write_dump_on};
+use crossview_eval::metrics::compute_metrics;
+use crossview_eval::parallel::{DEFAULT_WINDOW, map_ordered, worker_count};
+use crossview_eval::report::{EvalReport, TableRow, format_table};
+use crossview_model::{EncoderOptions, ModelMetadata, OnnxEncoder};
 
 /// Arguments of `crossview eval`.
 #[derive(Debug, Args)]
@@ -178,7 +179,7 @@ fn load_and_read(
         let encoders = loaders
             .into_iter()
             .map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
-            .collect::<crate::Result<Vec<_>>>()?;
+            .collect::<crossview_core::Result<Vec<_>>>()?;
         Ok((encoders, recording?))
     })
 }
@@ -203,7 +204,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         if let Some(path) = &args.report {
             let mut report = EvalReport::new("", &name, &[]);
             for (row, mode) in rows.iter().zip(["from-dump", "from-dump-identities"]) {
-                report.runs.push(crate::eval::report::ReportRun {
+                report.runs.push(crossview_eval::report::ReportRun {
                     mode: mode.into(),
                     threshold: None,
                     alpha: None,

@@ -5,8 +5,8 @@ use std::path::PathBuf;
 use anyhow::{Context, bail};
 use clap::{Args, Subcommand, ValueEnum};
 
-use crate::io::wildtrack;
-use crate::io::{Part, Recording, read_recording, split_bounds, write_recording};
+use crossview_data::wildtrack;
+use crossview_data::{Part, Recording, read_recording, split_bounds, write_recording};
 
 /// `crossview import <dataset>`: convert a dataset into a recording.
 #[derive(Debug, Args)]

@@ -70,9 +70,6 @@ pub enum Command {
     Train(train::TrainArgs),
     /// Stream a simulated scene through the server and show the association and its accuracy live.
     Demo(demo::DemoArgs),
-    /// Frames/s of encoder + matchings + identities on a recording (bench/compare_python.sh).
-    #[command(hide = true)]
-    BenchPipeline(demo::BenchPipelineArgs),
 }
 
 /// Entry point used by `main`.
@@ -89,6 +86,5 @@ pub fn run() -> anyhow::Result<()> {
         Command::Simulate(args) => simulate::run(args),
         Command::Train(args) => train::run(args),
         Command::Demo(args) => demo::run(args),
-        Command::BenchPipeline(args) => demo::run_bench_pipeline(args),
     }
 }

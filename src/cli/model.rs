@@ -4,14 +4,14 @@ use std::path::PathBuf;
 
 use clap::{Args, Subcommand};
 
-use crate::core::SceneSpec;
-use crate::io::recording::RecordingReader;
-use crate::model::metadata::KEY_SCENE;
-use crate::model::onnx::DimensionValue;
-use crate::model::{
+use crossview_core::SceneSpec;
+use crossview_data::recording::RecordingReader;
+use crossview_model::metadata::KEY_SCENE;
+use crossview_model::onnx::DimensionValue;
+use crossview_model::{
     EncoderConfig, EncoderWeights, ModelMetadata, OnnxEncoder, export, runtime, write_onnx,
 };
-use crate::train::clean::BoxFilter;
+use crossview_train::clean::BoxFilter;
 
 /// Model file tools.
 #[derive(Debug, Args)]
@@ -110,9 +110,9 @@ fn calibrate(a: CalibrateArgs) -> anyhow::Result<()> {
         );
     }
     let (weights, mut meta) = export::read_weights(&a.model)?;
-    let recording = crate::io::recording::read_recording(&a.data)?;
+    let recording = crossview_data::recording::read_recording(&a.data)?;
     super::eval::check_scene(&recording.scene, &meta)?;
-    let mut set = crate::train::TrainingSet::from_recording(&recording, 1)?;
+    let mut set = crossview_train::TrainingSet::from_recording(&recording, 1)?;
     // The boxes the model was trained on: its own training filter, when it records one.
     let filter: BoxFilter = meta
         .extra
@@ -121,7 +121,7 @@ fn calibrate(a: CalibrateArgs) -> anyhow::Result<()> {
         .unwrap_or_default();
     let stats = filter.apply(&mut set);
     let mut encoder = weights.clone();
-    let cal = crate::train::calibrate::calibrate(&mut encoder, &set, a.seed)?;
+    let cal = crossview_train::calibrate::calibrate(&mut encoder, &set, a.seed)?;
     println!(
         "calibrated on {} ({} of {} boxes after the training filter): {} synchronized and {} time-shifted pairs, false share {:.2}",
         a.data.display(),
@@ -193,7 +193,7 @@ fn info(a: InfoArgs) -> anyhow::Result<()> {
     let model = export::decode_model(&name, &bytes)?;
     let meta = export::model_metadata(&name, &model)?;
     let dim = runtime::check_contract(&model, meta.cameras.len())
-        .map_err(|reason| crate::Error::model(&name, reason))?;
+        .map_err(|reason| crossview_core::Error::model(&name, reason))?;
     let graph = model.graph.as_ref().expect("decode_model checks the graph");
     println!("model:     {name}");
     println!(
@@ -238,7 +238,7 @@ fn info(a: InfoArgs) -> anyhow::Result<()> {
     }
     let inits: std::collections::HashSet<&str> =
         graph.initializer.iter().map(|t| t.name.as_str()).collect();
-    let describe = |v: &crate::model::onnx::ValueInfoProto| {
+    let describe = |v: &crossview_model::onnx::ValueInfoProto| {
         let t = v.r#type.as_ref().and_then(|t| t.tensor_type.as_ref());
         let dims = t
             .and_then(|t| t.shape.as_ref())
@@ -281,7 +281,7 @@ fn info(a: InfoArgs) -> anyhow::Result<()> {
     let enc = OnnxEncoder::from_bytes(&name, &bytes)?;
     println!(
         "onnxruntime: loaded (dim {})",
-        crate::model::Encoder::dim(&enc)
+        crossview_core::Encoder::dim(&enc)
     );
     Ok(())
 }

@@ -5,7 +5,7 @@ use std::time::Duration;
 use anyhow::Context;
 use clap::Args;
 
-use crate::serve::{ConnectionLimits, Limits, ModelSpec, ServeConfig, TlsConfig};
+use crossview_serve::{ConnectionLimits, Limits, ModelSpec, ServeConfig, TlsConfig};
 
 /// Serve association over gRPC and HTTP JSON on one port.
 #[derive(Debug, Args)]
@@ -137,7 +137,7 @@ impl ServeArgs {
             .models
             .iter()
             .map(|m| ModelSpec::parse(m))
-            .collect::<crate::Result<Vec<_>>>()?;
+            .collect::<crossview_core::Result<Vec<_>>>()?;
         let mut api_keys = self.api_keys.clone();
         if let Some(p) = &self.api_key_file {
             let text = std::fs::read_to_string(p)
@@ -200,7 +200,7 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         let listener = tokio::net::TcpListener::bind(&args.listen)
             .await
             .with_context(|| format!("binding {}", args.listen))?;
-        crate::serve::run(config, listener, crate::serve::shutdown_signal()).await?;
+        crossview_serve::run(config, listener, crossview_serve::shutdown_signal()).await?;
         anyhow::Ok(())
     })
 }

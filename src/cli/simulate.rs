@@ -4,8 +4,8 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::Args;
 
-use crate::io::recording::RecordingWriter;
-use crate::sim::{AppearanceConfig, DetectorNoise, SceneConfig, SimConfig, Simulator};
+use crossview_data::recording::RecordingWriter;
+use crossview_data::sim::{AppearanceConfig, DetectorNoise, SceneConfig, SimConfig, Simulator};
 
 /// Options of `crossview simulate`.
 #[derive(Debug, Args)]

@@ -1,25 +1,15 @@
-//! `crossview train`: self-supervised training on a recording, ONNX export with metadata,
-//! training curve and optional validation on a labelled recording.
-use std::collections::BTreeMap;
+//! `crossview train`: the flags, their presets and checks; the run itself is
+//! `crossview_train::run` (self-supervised training, ONNX export with metadata, training
+//! curve, optional validation on a labelled recording).
 use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::{Args, ValueEnum};
 
-use crate::io::recording::{read_recording, read_recording_with};
-use crate::model::ModelMetadata;
-use crate::model::export::{read_weights, write_onnx};
-use crate::train::calibrate::calibrate;
-use crate::train::clean::BoxFilter;
-use crate::train::curve::write_svg;
-use crate::train::label_free::LabelFreeScorer;
-use crate::train::pseudo::PseudoOptions;
-use crate::train::trainer::{
-    CheckpointOptions, LrSchedule, Scoring, Select, TrainConfig, TrainOutcome, Validator,
-    train_from,
-};
-use crate::train::validate::{EvalValidator, candidate_thresholds};
-use crate::train::{TrainingSet, sampler::MIN_FRAMES};
+use crossview_train::clean::BoxFilter;
+use crossview_train::pseudo::PseudoOptions;
+use crossview_train::run::{RunOptions, run as run_training};
+use crossview_train::trainer::{CheckpointOptions, LrSchedule, Select, TrainConfig};
 
 /// Options of `crossview train`.
 #[derive(Debug, Args)]
@@ -290,291 +280,40 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     if args.select == SelectArg::Labelled && args.val.is_none() {
         anyhow::bail!("--select labelled needs --val");
     }
-    let (rec, read) = read_recording_with(&args.data, args.strict)
-        .with_context(|| format!("reading training data {}", args.data.display()))?;
-    let read_summary = format!(
-        "{} boxes clipped at the image edge, {} broken boxes and {} broken lines skipped",
-        read.clipped_boxes, read.skipped_boxes, read.skipped_lines
-    );
-    if read.skipped_boxes + read.skipped_lines > 0 {
-        tracing::warn!(
-            clipped = read.clipped_boxes,
-            skipped_boxes = read.skipped_boxes,
-            skipped_lines = read.skipped_lines,
-            first = read.first_problem.as_deref().unwrap_or(""),
-            "training data had broken boxes or lines (skipped; --strict aborts instead)"
-        );
-    }
-    let mut set = TrainingSet::from_recording(&rec.without_ids(), MIN_FRAMES)
-        .with_context(|| format!("training data {}", args.data.display()))?;
-    let removed = filter.apply(&mut set);
-    if !filter.is_off() {
-        tracing::info!(
-            before = removed.before,
-            small = removed.small,
-            stationary = removed.stationary,
-            kept = set.num_boxes(),
-            "filtered training boxes"
-        );
-    }
-    if set.num_boxes() == 0 {
-        anyhow::bail!(
-            "no training boxes left after --min-box-height {} / --drop-static-iou {}",
-            filter.min_height,
-            filter.static_iou
-        );
-    }
-    let scorer = hold_out(&mut set, args.holdout, args.seed)?;
-    let mut cfg = args.config();
-    let init = match &args.init {
-        Some(p) => {
-            let (w, m) = read_weights(p).with_context(|| format!("reading {}", p.display()))?;
-            if m.cameras != rec.scene.cameras {
-                anyhow::bail!(
-                    "{} was trained for other cameras than the training data",
-                    p.display()
-                );
-            }
-            cfg.fourier_features = w.config.fourier_features;
-            cfg.camera_dim = w.config.camera_dim;
-            cfg.width = w.config.width;
-            cfg.blocks = w.config.blocks;
-            Some(w)
-        }
-        None => None,
-    };
-    let mut validator = match &args.val {
-        Some(p) => {
-            let v = read_recording(p)
-                .with_context(|| format!("reading validation data {}", p.display()))?;
-            if v.scene.cameras != rec.scene.cameras {
-                anyhow::bail!(
-                    "validation recording {} has other cameras than the training data",
-                    p.display()
-                );
-            }
-            Some(EvalValidator::new(v, candidate_thresholds(), args.alpha)?)
-        }
-        None => None,
-    };
-    tracing::info!(
-        frames = set.num_frames(),
-        cameras = set.num_cameras(),
-        boxes = set.num_boxes(),
-        ?cfg,
-        "training"
-    );
-    let ckpt = CheckpointOptions {
-        dir: args.checkpoint_dir.clone(),
-        every: args.checkpoint_every,
-        resume: args.resume,
-    };
-    let scoring = Scoring {
-        label_free: scorer.as_ref(),
-        validator: validator.as_mut().map(|v| v as &mut dyn Validator),
+    let report = run_training(RunOptions {
+        data: args.data.clone(),
+        strict: args.strict,
+        val: args.val.clone(),
+        init: args.init.clone(),
+        out: args.out.clone(),
+        curve: args.curve.clone(),
+        data_name: args.data_name.clone(),
+        config: args.config(),
+        filter,
+        holdout: args.holdout,
         select: match args.select {
             SelectArg::LabelFree => Select::LabelFree,
             SelectArg::Labelled => Select::Labelled,
         },
-    };
-    let outcome = train_from(&set, &cfg, init.as_ref(), scoring, &ckpt, !args.quiet)?;
-    let data_name = args.data_name.clone().unwrap_or_else(|| {
-        args.data
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default()
-    });
-    let mut meta = metadata(
-        &rec.scene.cameras,
-        &args,
-        &cfg,
-        &outcome,
-        &data_name,
-        &rec.scene.name,
-    );
-    // Label-free confidence: synchronized vs time-shifted pairs of the training frames.
-    let mut exported = outcome.weights.clone();
-    match calibrate(&mut exported, &set, args.seed) {
-        Ok(cal) => {
-            meta.calibration = Some(std::sync::Arc::new(cal));
-            meta.match_threshold = Some(args.match_threshold);
-        }
-        Err(e) => tracing::warn!(error = %e, "no calibration stored: identities will use S"),
-    }
-    write_onnx(&args.out, &outcome.weights, &meta)
-        .with_context(|| format!("writing {}", args.out.display()))?;
-    let curve = args
-        .curve
-        .clone()
-        .unwrap_or_else(|| args.out.with_extension("svg"));
-    write_svg(
-        &curve,
-        &outcome.history,
-        &format!("crossview train on {data_name} (width {})", cfg.width),
-    )?;
-    let history = args.out.with_extension("history.json");
-    std::fs::write(&history, serde_json::to_vec_pretty(&outcome.history)?)
-        .with_context(|| format!("writing {}", history.display()))?;
+        threshold: args.threshold,
+        alpha: args.alpha,
+        match_threshold: args.match_threshold,
+        checkpoint: CheckpointOptions {
+            dir: args.checkpoint_dir.clone(),
+            every: args.checkpoint_every,
+            resume: args.resume,
+        },
+        progress: !args.quiet,
+    })
+    .with_context(|| format!("training on {}", args.data.display()))?;
     println!(
-        "wrote {} ({}); curve {}; data: {read_summary}",
+        "wrote {} ({}); curve {}; data: {}",
         args.out.display(),
-        summary(&outcome, meta.threshold),
-        curve.display()
+        report.summary,
+        report.curve.display(),
+        report.data
     );
     Ok(())
-}
-
-fn metadata(
-    cameras: &[crate::core::CameraSpec],
-    args: &TrainArgs,
-    cfg: &TrainConfig,
-    out: &TrainOutcome,
-    data_name: &str,
-    scene: &str,
-) -> ModelMetadata {
-    let mut meta = ModelMetadata::new(cameras.to_vec());
-    meta.alpha = args.alpha;
-    meta.threshold = chosen_threshold(out).unwrap_or(args.threshold);
-    let mut extra = BTreeMap::new();
-    extra.insert("crossview.scene".into(), scene.to_string());
-    extra.insert("crossview.training_data".into(), data_name.to_string());
-    extra.insert("crossview.steps".into(), out.steps.to_string());
-    // `epochs`: the epoch the exported weights come from (the best validated one);
-    // `epochs_run` / `steps`: how long the run trained in total.
-    extra.insert("crossview.epochs".into(), out.best_epoch.to_string());
-    extra.insert(
-        "crossview.epochs_run".into(),
-        out.history.last().map_or(0, |r| r.epoch).to_string(),
-    );
-    extra.insert(
-        "crossview.train_seconds".into(),
-        format!("{:.0}", out.train_seconds),
-    );
-    extra.insert(
-        "crossview.train_config".into(),
-        serde_json::to_string(cfg).unwrap_or_default(),
-    );
-    extra.insert(
-        "crossview.train_box_filter".into(),
-        serde_json::to_string(&args.box_filter()).unwrap_or_default(),
-    );
-    extra.insert(
-        "crossview.selection".into(),
-        serde_json::json!({
-            "by": match out.selected_by {
-                Some(Select::LabelFree) => "label-free (cycle consistency on held-out training frames)",
-                Some(Select::Labelled) => "labelled validation",
-                None => "none (last epoch)",
-            },
-            "held_out_fraction": args.holdout,
-            "epoch": out.best_epoch,
-            "label_free": out.label_free,
-        })
-        .to_string(),
-    );
-    if let Some(s) = out.best {
-        extra.insert(
-            "crossview.validation".into(),
-            format!(
-                "{{\"data\":{:?},\"acc\":{:.4},\"ipaa100\":{:.4},\"precision\":{:.4},\"recall\":{:.4},\"threshold\":{:.1}}}",
-                args.val
-                    .as_ref()
-                    .and_then(|p| p.file_name())
-                    .map(|n| n.to_string_lossy().into_owned())
-                    .unwrap_or_default(),
-                s.acc,
-                s.ipaa100,
-                s.precision,
-                s.recall,
-                s.threshold
-            ),
-        );
-    }
-    meta.extra = extra;
-    meta
-}
-
-/// Splits the last `fraction` of the frames (at least [`MIN_HELD_OUT`]) off `set` for the
-/// label-free score. A recording too short to spare them trains on everything, unscored,
-/// with a warning.
-fn hold_out(
-    set: &mut TrainingSet,
-    fraction: f64,
-    seed: u64,
-) -> anyhow::Result<Option<LabelFreeScorer>> {
-    if fraction <= 0.0 {
-        return Ok(None);
-    }
-    let n = set.num_frames();
-    let held_out = ((n as f64 * fraction).round() as usize).max(MIN_HELD_OUT);
-    if n < held_out + MIN_FRAMES {
-        tracing::warn!(
-            frames = n,
-            held_out,
-            "recording too short to hold out frames for the label-free score: training on \
-             all of them and exporting the last epoch"
-        );
-        return Ok(None);
-    }
-    let tail = set.split_off_tail(held_out);
-    tracing::info!(
-        held_out,
-        training = set.num_frames(),
-        "frames held out for the label-free score"
-    );
-    Ok(Some(LabelFreeScorer::new(
-        tail,
-        candidate_thresholds(),
-        seed,
-    )?))
-}
-
-/// Fewest frames held out for the label-free score (every one needs a partner 5–19 frames
-/// away).
-const MIN_HELD_OUT: usize = 11;
-
-/// The threshold on `S` that labelled selection chose. Label-free selection keeps
-/// `--threshold`: the calibrated decision threshold of the label-free score ran 3–4 ACC points
-/// below the labelled choice on WILDTRACK, the fixed reference 0.4 within 1 point
-/// (BENCHMARKS.md, "Training"); it is recorded in `crossview.selection` for reference.
-fn chosen_threshold(out: &TrainOutcome) -> Option<f32> {
-    match out.selected_by? {
-        Select::LabelFree => None,
-        Select::Labelled => out.best.map(|s| s.threshold),
-    }
-}
-
-/// One line on what was exported and why: epoch, steps, time, threshold and scores.
-fn summary(out: &TrainOutcome, threshold: f32) -> String {
-    let by = match out.selected_by {
-        Some(Select::LabelFree) => "chosen by the label-free score",
-        Some(Select::Labelled) => "chosen by labelled validation",
-        None => "last epoch, nothing scored",
-    };
-    let mut s = format!(
-        "epoch {} {by}, {} steps, {:.0}s training, threshold {:.1}",
-        out.best_epoch, out.steps, out.train_seconds, threshold
-    );
-    if let Some(lf) = out.label_free {
-        s.push_str(&format!(
-            "; label-free: cycle {:.2} sync {:.2} (expected decision accuracy {:.2} at {:.1})",
-            100.0 * lf.cycle,
-            100.0 * lf.sync_acc,
-            100.0 * lf.expected_acc,
-            lf.threshold
-        ));
-    }
-    if let Some(v) = out.best {
-        s.push_str(&format!(
-            "; val ACC {:.2} IPAA-100 {:.2} P {:.2} R {:.2} (at its own best threshold {:.1})",
-            100.0 * v.acc,
-            100.0 * v.ipaa100,
-            100.0 * v.precision,
-            100.0 * v.recall,
-            v.threshold
-        ));
-    }
-    s
 }
 
 #[cfg(test)]

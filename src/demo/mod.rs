@@ -5,10 +5,9 @@
 //! [`stream_scene`] is the client: it checks the server's scene matches the simulated cameras,
 //! opens one bidirectional `Stream` call, and per frame sends every camera's batch (ground-truth
 //! ids stripped: the protobuf `Detection` has no id field), waits for that frame's result and
-//! scores it with [`score`] (SPEC §5, via `crate::eval::metrics`). [`start_local_server`]
+//! scores it with [`score`] (SPEC §5, via `crossview_eval::metrics`). [`start_local_server`]
 //! starts the real server in-process on a loopback port for `crossview demo`.
 pub mod score;
-pub mod throughput;
 
 use std::future::Future;
 use std::net::SocketAddr;
@@ -20,15 +19,17 @@ use tokio_stream::StreamExt;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::transport::Channel;
 
-use crate::core::{Detection, Frame, SceneSpec};
-use crate::eval::metrics::Metrics;
-use crate::serve::pb;
-use crate::serve::pb::association_client::AssociationClient;
-use crate::serve::{ServeConfig, Server};
-use crate::sim::{SimConfig, Simulator};
-use crate::{Error, Result};
+use crossview_api::convert::{detection_to_pb, identity_from_pb};
+use crossview_api::pb;
+use crossview_api::pb::association_client::AssociationClient;
+use crossview_core::identity::Identity;
+use crossview_core::{Error, Result};
+use crossview_core::{Frame, SceneSpec};
+use crossview_data::sim::{SimConfig, Simulator};
+use crossview_eval::metrics::Metrics;
+use crossview_serve::{ServeConfig, Server};
 
-pub use score::{RunningScore, ServedIdentity, TruthIds, pair_records};
+pub use score::{RunningScore, TruthIds, pair_records};
 
 /// What one demo run streams.
 #[derive(Debug, Clone)]
@@ -122,20 +123,6 @@ fn check_scene(served: &pb::Scene, spec: &SceneSpec) -> Result<()> {
     ))
 }
 
-/// The wire form of one detection: box, score, appearance — never the ground-truth id.
-fn detection_to_pb(d: &Detection) -> pb::Detection {
-    pb::Detection {
-        bbox: Some(pb::BoundingBox {
-            x1: d.bbox[0],
-            y1: d.bbox[1],
-            x2: d.bbox[2],
-            y2: d.bbox[3],
-        }),
-        score: Some(d.score),
-        appearance: d.appearance.clone().unwrap_or_default(),
-    }
-}
-
 /// Every camera's batch of `frame` (an empty list for a camera that saw nobody).
 fn frame_batches(scene: &str, spec: &SceneSpec, frame: &Frame) -> Vec<pb::Batch> {
     spec.cameras
@@ -212,18 +199,7 @@ pub async fn stream_scene(
                 frame.frame_id, result.error
             )));
         }
-        let identities: Vec<ServedIdentity> = result
-            .identities
-            .iter()
-            .map(|i| ServedIdentity {
-                confidence: i.confidence,
-                members: i
-                    .members
-                    .iter()
-                    .map(|m| (m.camera_index as usize, m.index as usize))
-                    .collect(),
-            })
-            .collect();
+        let identities: Vec<Identity> = result.identities.iter().map(identity_from_pb).collect();
         let records = pair_records(frame.frame_id, &cameras, &truth, &identities)?;
         let (frame_m, running) = score.add_frame(records);
         frames += 1;
@@ -232,7 +208,7 @@ pub async fn stream_scene(
             boxes: frame.num_boxes(),
             identities: identities.len(),
             multi_view: identities.iter().filter(|i| i.members.len() > 1).count(),
-            links: identities.iter().map(ServedIdentity::links).sum(),
+            links: identities.iter().map(Identity::links).sum(),
             complete: result.complete,
             latency_ms: result.latency_ms,
             frame: frame_m,

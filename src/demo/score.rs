@@ -5,8 +5,9 @@
 //! (two members of one identity in cameras `i` and `j`) become one [`PairRecord`], and the
 //! project's SPEC §5 code ([`compute_metrics`]) scores them: per frame and running over all
 //! frames so far. Ground-truth ids never leave the client.
-use crate::eval::metrics::{Metrics, PairRecord, compute_metrics};
-use crate::{Error, Result};
+use crossview_core::identity::Identity;
+use crossview_core::{Error, Result};
+use crossview_eval::metrics::{Metrics, PairRecord, compute_metrics};
 
 /// Ground-truth ids of every box of a frame, per camera (`None` = camera did not report).
 ///
@@ -30,7 +31,7 @@ impl TruthIds {
     }
 
     /// The ids of `frame`'s boxes, camera by camera.
-    pub fn of_frame(&mut self, frame: &crate::core::Frame) -> Vec<Option<Vec<u64>>> {
+    pub fn of_frame(&mut self, frame: &crossview_core::Frame) -> Vec<Option<Vec<u64>>> {
         frame
             .views
             .iter()
@@ -50,23 +51,6 @@ impl TruthIds {
     }
 }
 
-/// One identity as returned by the server: confidence and `(camera_index, box_index)` members.
-#[derive(Debug, Clone, PartialEq)]
-pub struct ServedIdentity {
-    /// Identity confidence in [0, 1].
-    pub confidence: f32,
-    /// Its boxes: camera index and index into that camera's batch.
-    pub members: Vec<(usize, usize)>,
-}
-
-impl ServedIdentity {
-    /// Cross-view links of this identity (pairs of members), `k·(k−1)/2` for `k` members.
-    pub fn links(&self) -> usize {
-        let k = self.members.len();
-        k * k.saturating_sub(1) / 2
-    }
-}
-
 /// The SPEC §5 image-pair records implied by a frame's identities.
 ///
 /// `truth[c]` holds the ids of camera `c`'s boxes; pairs are all `i < j` with boxes on both
@@ -77,7 +61,7 @@ pub fn pair_records(
     frame_id: u64,
     cameras: &[String],
     truth: &[Option<Vec<u64>>],
-    identities: &[ServedIdentity],
+    identities: &[Identity],
 ) -> Result<Vec<PairRecord>> {
     let len = |c: usize| truth.get(c).and_then(Option::as_ref).map_or(0, Vec::len);
     for (k, ident) in identities.iter().enumerate() {
@@ -161,7 +145,7 @@ impl RunningScore {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::{Detection, Frame};
+    use crossview_core::{Detection, Frame};
 
     fn names() -> Vec<String> {
         vec!["a".into(), "b".into(), "c".into()]
@@ -172,11 +156,13 @@ mod tests {
         // a: persons 1, 2; b: persons 2, 1; c: person 1 only.
         let truth = vec![Some(vec![1, 2]), Some(vec![2, 1]), Some(vec![1])];
         let ids = vec![
-            ServedIdentity {
+            Identity {
+                id: 0,
                 confidence: 0.9,
                 members: vec![(0, 0), (1, 1), (2, 0)],
             },
-            ServedIdentity {
+            Identity {
+                id: 0,
                 confidence: 0.8,
                 members: vec![(0, 1), (1, 0)],
             },
@@ -192,24 +178,27 @@ mod tests {
         assert_eq!(identities_links(&ids), 3 + 1);
     }
 
-    fn identities_links(ids: &[ServedIdentity]) -> usize {
-        ids.iter().map(ServedIdentity::links).sum()
+    fn identities_links(ids: &[Identity]) -> usize {
+        ids.iter().map(Identity::links).sum()
     }
 
     #[test]
     fn a_wrong_identity_lowers_the_running_accuracy() {
         let truth = vec![Some(vec![1, 2]), Some(vec![1, 2]), None];
         let right = vec![
-            ServedIdentity {
+            Identity {
+                id: 0,
                 confidence: 1.0,
                 members: vec![(0, 0), (1, 0)],
             },
-            ServedIdentity {
+            Identity {
+                id: 0,
                 confidence: 1.0,
                 members: vec![(0, 1), (1, 1)],
             },
         ];
-        let wrong = vec![ServedIdentity {
+        let wrong = vec![Identity {
+            id: 0,
             confidence: 1.0,
             members: vec![(0, 0), (1, 1)],
         }];
@@ -225,13 +214,15 @@ mod tests {
     #[test]
     fn members_outside_the_frame_are_an_error_not_a_panic() {
         let truth = vec![Some(vec![1]), Some(vec![1]), Some(vec![])];
-        let bad = vec![ServedIdentity {
+        let bad = vec![Identity {
+            id: 0,
             confidence: 1.0,
             members: vec![(0, 0), (2, 3)],
         }];
         let err = pair_records(0, &names(), &truth, &bad).unwrap_err();
         assert!(err.to_string().contains("outside"), "{err}");
-        let bad_cam = vec![ServedIdentity {
+        let bad_cam = vec![Identity {
+            id: 0,
             confidence: 1.0,
             members: vec![(7, 0)],
         }];

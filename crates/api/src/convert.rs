@@ -1,0 +1,178 @@
+//! Every conversion between the protobuf messages ([`crate::pb`]) and the domain and JSON types
+//! (`crossview_core`, [`crate::types`]), in both directions.
+use crossview_core::identity::Identity;
+use crossview_core::{Batch, Detection, Error, Result, SceneSpec};
+
+use crate::pb;
+use crate::types;
+
+/// Protobuf detections → domain detections; a missing box is an error naming its field.
+pub(crate) fn detections_from_pb(field: &str, dets: Vec<pb::Detection>) -> Result<Vec<Detection>> {
+    dets.into_iter()
+        .enumerate()
+        .map(|(i, d)| {
+            let b = d
+                .bbox
+                .ok_or_else(|| Error::invalid(format!("{field}[{i}].bbox"), "missing"))?;
+            Ok(Detection {
+                bbox: [b.x1, b.y1, b.x2, b.y2],
+                score: d.score.unwrap_or(1.0),
+                id: None,
+                appearance: (!d.appearance.is_empty()).then_some(d.appearance),
+            })
+        })
+        .collect()
+}
+
+/// Protobuf batch → (scene, domain batch).
+pub fn batch_from_pb(b: pb::Batch) -> Result<(String, Batch)> {
+    let detections = detections_from_pb("detections", b.detections)?;
+    Ok((
+        b.scene,
+        Batch {
+            camera: b.camera,
+            frame_id: b.frame_id,
+            detections,
+        },
+    ))
+}
+
+/// Protobuf unary request → (scene, domain request).
+pub fn associate_from_pb(r: pb::AssociateRequest) -> Result<(String, types::AssociateRequest)> {
+    let views = r
+        .views
+        .into_iter()
+        .enumerate()
+        .map(|(k, v)| {
+            Ok(types::CameraView {
+                camera: v.camera,
+                detections: detections_from_pb(&format!("views[{k}].detections"), v.detections)?,
+            })
+        })
+        .collect::<Result<_>>()?;
+    Ok((
+        r.scene,
+        types::AssociateRequest {
+            frame_id: r.frame_id,
+            views,
+        },
+    ))
+}
+
+/// A core identity of scene `spec` as its published form (members named by camera).
+pub fn identity_out(spec: &SceneSpec, id: Identity) -> types::IdentityOut {
+    types::IdentityOut {
+        id: id.id,
+        confidence: id.confidence,
+        members: id
+            .members
+            .into_iter()
+            .map(|(c, index)| types::Member {
+                camera: spec.cameras[c].name.clone(),
+                camera_index: c,
+                index,
+            })
+            .collect(),
+    }
+}
+
+/// A published identity back as the core type (what a client scores).
+pub fn identity_from_out(i: &types::IdentityOut) -> Identity {
+    Identity {
+        id: i.id,
+        confidence: i.confidence,
+        members: i
+            .members
+            .iter()
+            .map(|m| (m.camera_index, m.index))
+            .collect(),
+    }
+}
+
+/// A protobuf identity back as the core type (what a gRPC client scores).
+pub fn identity_from_pb(i: &pb::Identity) -> Identity {
+    Identity {
+        id: i.id as usize,
+        confidence: i.confidence,
+        members: i
+            .members
+            .iter()
+            .map(|m| (m.camera_index as usize, m.index as usize))
+            .collect(),
+    }
+}
+
+/// Domain result → protobuf.
+pub fn result_to_pb(r: &types::FrameResult) -> pb::FrameResult {
+    pb::FrameResult {
+        scene: r.scene.clone(),
+        frame_id: r.frame_id,
+        complete: r.complete,
+        missing_cameras: r.missing_cameras.clone(),
+        identities: r
+            .identities
+            .iter()
+            .map(|i| pb::Identity {
+                id: i.id as u32,
+                confidence: i.confidence,
+                members: i
+                    .members
+                    .iter()
+                    .map(|m| pb::Member {
+                        camera: m.camera.clone(),
+                        camera_index: m.camera_index as u32,
+                        index: m.index as u32,
+                    })
+                    .collect(),
+            })
+            .collect(),
+        latency_ms: r.latency_ms,
+        error: r.error.clone().unwrap_or_default(),
+        error_kind: r.error_kind.clone().unwrap_or_default(),
+    }
+}
+
+/// Scene description → protobuf.
+pub fn scene_to_pb(s: types::SceneDescription) -> pb::Scene {
+    pb::Scene {
+        name: s.name,
+        cameras: s
+            .cameras
+            .into_iter()
+            .map(|c| pb::Camera {
+                name: c.name,
+                width: c.width,
+                height: c.height,
+            })
+            .collect(),
+        threshold: s.threshold,
+        alpha: s.alpha,
+        model_version: s.model_version,
+        appearance_length: s.appearance_length.unwrap_or(0) as u32,
+        sync_timeout_ms: s.sync_timeout_ms,
+    }
+}
+
+/// The wire form of one detection: box, score, appearance — never the ground-truth id.
+pub fn detection_to_pb(d: &Detection) -> pb::Detection {
+    pb::Detection {
+        bbox: Some(pb::BoundingBox {
+            x1: d.bbox[0],
+            y1: d.bbox[1],
+            x2: d.bbox[2],
+            y2: d.bbox[3],
+        }),
+        score: Some(d.score),
+        appearance: d.appearance.clone().unwrap_or_default(),
+    }
+}
+
+/// A domain batch as the protobuf message for scene `scene`.
+pub fn batch_to_pb(scene: &str, b: &Batch) -> pb::Batch {
+    pb::Batch {
+        scene: scene.to_string(),
+        camera: b.camera.clone(),
+        frame_id: b.frame_id,
+        detections: b.detections.iter().map(detection_to_pb).collect(),
+    }
+}

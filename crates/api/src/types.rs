@@ -1,0 +1,88 @@
+//! Transport-neutral request and result types of the service. Their serde form is the HTTP JSON
+//! API; `grpc.rs` converts them to and from the protobuf messages.
+use serde::{Deserialize, Serialize};
+
+use crossview_core::{CameraSpec, Detection};
+
+/// One camera's detections in a unary association request.
+///
+/// Unknown JSON fields are ignored, here as in batches (and as protobuf ignores unknown
+/// fields): one rule for every request body.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CameraView {
+    pub camera: String,
+    #[serde(default)]
+    pub detections: Vec<Detection>,
+}
+
+/// A whole, already synchronized frame (`POST /v1/scenes/{scene}/associate`). Cameras of the
+/// scene absent from `views` count as missing. Unknown fields are ignored (see [`CameraView`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AssociateRequest {
+    #[serde(default)]
+    pub frame_id: u64,
+    pub views: Vec<CameraView>,
+}
+
+/// One box of an identity.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Member {
+    /// Camera name.
+    pub camera: String,
+    /// Camera index in the scene.
+    pub camera_index: usize,
+    /// Index into that camera's batch.
+    pub index: usize,
+}
+
+/// A person seen by one or more cameras in one frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct IdentityOut {
+    pub id: usize,
+    pub confidence: f32,
+    pub members: Vec<Member>,
+}
+
+/// The association of one frame, as published to subscribers and returned by `associate`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameResult {
+    pub scene: String,
+    pub frame_id: u64,
+    /// True when every camera reported.
+    pub complete: bool,
+    /// Cameras that did not report.
+    pub missing_cameras: Vec<String>,
+    pub identities: Vec<IdentityOut>,
+    /// Server-side latency: first batch (or request) to result, in milliseconds.
+    pub latency_ms: f64,
+    /// Set when association itself failed (the frame is still published, without identities).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    /// The error's kind (`deadline_exceeded`, `unavailable`, `encoder`, ...: the labels of
+    /// `crossview_errors_total`), set with `error`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error_kind: Option<String>,
+}
+
+/// The acknowledgement of an accepted batch.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BatchAck {
+    pub scene: String,
+    pub camera: String,
+    pub frame_id: u64,
+    pub accepted: bool,
+}
+
+/// What a client may know about a loaded scene.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SceneDescription {
+    pub name: String,
+    pub cameras: Vec<CameraSpec>,
+    pub threshold: f32,
+    pub alpha: f32,
+    pub model_version: String,
+    /// Appearance vector length fixed by the first accepted batch with vectors; `None` while
+    /// unknown.
+    pub appearance_length: Option<usize>,
+    pub sync_timeout_ms: u64,
+}

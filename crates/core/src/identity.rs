@@ -1,0 +1,1076 @@
+//! **[ours]** Identities: the camera pairs' Hungarian matches of one frame turned into
+//! persons — clusters with at most one box per camera — that are consistent across views.
+//!
+//! # Scheme: greedy additive clustering of the Hungarian evidence
+//!
+//! Pairwise matching is good at what it decides (each camera pair's one-to-one assignment)
+//! but decides each pair alone, so its results can contradict each other (A1↔B1, B1↔C1 but
+//! A1↔C2). Averaging raw `S` entries over clusters (the previous scheme) let unrelated,
+//! pair-normalised scores override those decisions. Here the evidence is the assignment
+//! itself. Every pair of boxes `u`, `v` in different cameras gets an additive weight:
+//! - `u`, `v` a Hungarian pair: `conf − threshold`, plus `support_bonus` for every third
+//!   camera whose Hungarian partners of `u` and of `v` are the same box, minus
+//!   `dissent_penalty` for every third camera where both have partners and they differ;
+//! - otherwise, when `u` or `v` has a *kept* Hungarian partner (`conf ≥ threshold`) in the
+//!   other's camera: `−conflict_penalty` (that camera pair chose someone else);
+//! - otherwise 0 (no evidence either way).
+//!
+//! Starting from singletons, the two clusters with the largest total weight between them are
+//! merged while that total is ≥ 0 and their camera sets are disjoint (greedy additive edge
+//! contraction, the standard heuristic for correlation clustering / multicut). Weights are
+//! additive, so merging never needs more than the member pairs of the two clusters; only
+//! clusters joined by a Hungarian pair can reach a positive total, so the candidates stay a
+//! handful per cluster, held in a max-heap with versioned entries.
+//!
+//! Properties (tested): identities are camera-exclusive; with two cameras they are exactly
+//! the pairwise matches kept at `threshold`; when the kept matches of all camera pairs are
+//! already transitively consistent they are returned unchanged; one camera pair that swaps two
+//! persons while the other pairs agree is repaired; the result is deterministic (ties go to
+//! the lowest box indices). The method and its parameters were chosen by measurement against
+//! union-find variants on the WILDTRACK validation frames (BENCHMARKS.md, "Identities").
+//!
+//! # Confidence
+//! `conf` is the pair's calibrated `P(same person | distance)` when the model carries a
+//! [`Calibration`] (comparable across pairs and scene densities), else SPEC §3's `S`. An
+//! identity's confidence is the chance that it is right — its members are one person and no
+//! box of that person is missing:
+//! `mean conf of the Hungarian pairs inside it (1 for a single box)
+//!  × ∏ over the other cameras (1 − the best conf of a member's Hungarian partner there)`.
+//! A single box that no camera pair assigned, while other cameras have boxes, gets 0.5.
+use std::collections::BinaryHeap;
+use std::sync::Arc;
+
+use crate::association::ViewPair;
+use crate::calibration::Calibration;
+use crate::matching::{Assigned, Match, PairMatching};
+
+/// A person seen by one or more cameras in one frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Identity {
+    /// Identity number within the frame (0-based, dense).
+    pub id: usize,
+    /// Confidence in [0, 1] (see the module documentation).
+    pub confidence: f32,
+    /// Members as `(camera index, index into that camera's detections)`, sorted by camera.
+    pub members: Vec<(usize, usize)>,
+}
+
+impl Identity {
+    /// Cross-view links of this identity (pairs of members), `k·(k−1)/2` for `k` members.
+    pub fn links(&self) -> usize {
+        let k = self.members.len();
+        k * k.saturating_sub(1) / 2
+    }
+}
+
+/// How a frame's Hungarian pairs become identities.
+#[derive(Debug, Clone, PartialEq)]
+pub struct IdentityConfig {
+    /// The model's calibration: with it a pair's confidence is `P(same | distance)`, without
+    /// it SPEC §3's `S`.
+    pub calibration: Option<Arc<Calibration>>,
+    /// A Hungarian pair counts as a kept match when its confidence is at least this.
+    pub threshold: f32,
+    /// Weight added per third camera that agrees with a Hungarian pair.
+    pub support_bonus: f32,
+    /// Weight removed per third camera that contradicts a Hungarian pair.
+    pub dissent_penalty: f32,
+    /// Weight of a box pair that a kept match of its camera pair contradicts.
+    pub conflict_penalty: f32,
+}
+
+impl IdentityConfig {
+    /// The measured defaults (BENCHMARKS.md) around a confidence `threshold`.
+    pub fn new(calibration: Option<Arc<Calibration>>, threshold: f32) -> Self {
+        IdentityConfig {
+            calibration,
+            threshold,
+            support_bonus: 0.1,
+            dissent_penalty: 0.05,
+            conflict_penalty: 0.3,
+        }
+    }
+
+    /// The confidence of one Hungarian pair: calibrated probability, or `S`. Non-finite
+    /// values become 0 (no evidence).
+    pub fn confidence(&self, p: &Assigned) -> f32 {
+        let c = match &self.calibration {
+            Some(cal) => cal.probability(p.distance),
+            None => p.score,
+        };
+        if c.is_finite() { c } else { 0.0 }
+    }
+
+    /// The Hungarian pairs of `m` whose confidence reaches the threshold, scored with that
+    /// confidence: pairwise matching under this configuration's measure.
+    pub fn kept(&self, m: &PairMatching) -> Vec<Match> {
+        m.assignment
+            .iter()
+            .filter_map(|p| {
+                let c = self.confidence(p);
+                (c >= self.threshold).then_some(Match {
+                    a: p.a,
+                    b: p.b,
+                    score: c,
+                })
+            })
+            .collect()
+    }
+}
+
+impl Default for IdentityConfig {
+    /// Uncalibrated, threshold 0.4 (SPEC §3's WILDTRACK setting).
+    fn default() -> Self {
+        IdentityConfig::new(None, 0.4)
+    }
+}
+
+/// No partner.
+const NONE: u32 = u32::MAX;
+
+/// The frame's Hungarian evidence, indexed by flattened box (boxes numbered camera by camera)
+/// and camera: `u * cameras + c`.
+struct Evidence {
+    cameras: usize,
+    offsets: Vec<usize>,
+    cam_of: Vec<usize>,
+    /// Hungarian partner of box `u` in camera `c`, or [`NONE`].
+    partner: Vec<u32>,
+    /// Confidence of that pair.
+    conf: Vec<f32>,
+    /// Weight of that pair (see the module documentation).
+    weight: Vec<f32>,
+    threshold: f32,
+    conflict: f32,
+}
+
+impl Evidence {
+    /// Whether a camera other than box `u`'s has boxes in this frame.
+    fn others_have_boxes(&self, u: usize) -> bool {
+        let cu = self.cam_of[u];
+        (0..self.cameras).any(|c| c != cu && self.offsets[c + 1] > self.offsets[c])
+    }
+
+    fn kept(&self, u: usize, c: usize) -> bool {
+        let k = u * self.cameras + c;
+        self.partner[k] != NONE && self.conf[k] >= self.threshold
+    }
+
+    /// The additive weight between boxes `u` and `v`.
+    fn pair_weight(&self, u: usize, v: usize) -> f32 {
+        let (cu, cv) = (self.cam_of[u], self.cam_of[v]);
+        if cu == cv {
+            return 0.0;
+        }
+        let k = u * self.cameras + cv;
+        if self.partner[k] == v as u32 {
+            self.weight[k]
+        } else if self.kept(u, cv) || self.kept(v, cu) {
+            -self.conflict
+        } else {
+            0.0
+        }
+    }
+}
+
+/// A merge candidate: clusters `lo < hi` at total weight `w`, valid while both clusters still
+/// have the (16-bit, wrapping) versions they had when it was pushed. Packed into one integer
+/// whose order is the merge order — weight first, then the lowest `(lo, hi)` — so the heap's
+/// comparisons and moves are cheap: `key(32) | !lo(32) | !hi(32) | version lo(16) | version hi(16)`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+struct Candidate(u128);
+
+impl Candidate {
+    fn new(w: f32, lo: usize, hi: usize, versions: (u32, u32)) -> Self {
+        let (lo, hi) = (!(lo as u32) as u128, !(hi as u32) as u128);
+        Candidate(
+            (order_key(w) as u128) << 96
+                | lo << 64
+                | hi << 32
+                | ((versions.0 & 0xffff) as u128) << 16
+                | (versions.1 & 0xffff) as u128,
+        )
+    }
+
+    fn lo(self) -> usize {
+        !((self.0 >> 64) as u32) as usize
+    }
+
+    fn hi(self) -> usize {
+        !((self.0 >> 32) as u32) as usize
+    }
+
+    fn versions(self) -> (u32, u32) {
+        (((self.0 >> 16) & 0xffff) as u32, (self.0 & 0xffff) as u32)
+    }
+}
+
+/// `f32` bits mapped to an unsigned key with the same order as `f32::total_cmp`.
+fn order_key(w: f32) -> u32 {
+    let bits = w.to_bits();
+    if bits >> 31 == 1 {
+        !bits
+    } else {
+        bits | 1 << 31
+    }
+}
+
+/// End of a member list.
+const END: usize = usize::MAX;
+
+/// Working state of the clustering (a cluster is named by its smallest box index).
+struct Clustering<'a> {
+    ev: &'a Evidence,
+    /// Camera bitset of each cluster (`words` u64 per cluster).
+    cams: Vec<u64>,
+    words: usize,
+    root: Vec<usize>,
+    version: Vec<u32>,
+    /// Members as linked lists: `next[i]` follows box `i` ([`END`] ends it), `last[r]` is the
+    /// last member of cluster `r`.
+    next: Vec<usize>,
+    last: Vec<usize>,
+    heap: BinaryHeap<Candidate>,
+    /// Scratch list of the clusters already offered to a merged cluster.
+    seen: Vec<usize>,
+}
+
+impl<'a> Clustering<'a> {
+    /// Every box its own cluster, the heap seeded with every Hungarian pair's candidate.
+    fn new(ev: &'a Evidence) -> Self {
+        let (n, cameras) = (ev.cam_of.len(), ev.cameras);
+        let words = cameras.div_ceil(64).max(1);
+        let mut cams = vec![0u64; n * words];
+        for (i, &c) in ev.cam_of.iter().enumerate() {
+            cams[i * words + c / 64] |= 1u64 << (c % 64);
+        }
+        let mut cl = Clustering {
+            ev,
+            cams,
+            words,
+            root: (0..n).collect(),
+            version: vec![0; n],
+            next: vec![END; n],
+            last: (0..n).collect(),
+            heap: BinaryHeap::new(),
+            seen: Vec::with_capacity(2 * cameras),
+        };
+        let mut initial = Vec::with_capacity(n * cameras / 2);
+        for u in 0..n {
+            for c in 0..cameras {
+                let v = ev.partner[u * cameras + c];
+                if v != NONE && u < v as usize {
+                    initial.extend(cl.candidate(u, v as usize));
+                }
+            }
+        }
+        cl.heap = BinaryHeap::from(initial);
+        cl
+    }
+
+    /// Greedy merging: the best positive candidate first, skipping stale ones (a cluster that
+    /// changed since the candidate was made), until no merge gains anything.
+    fn run(&mut self) {
+        while let Some(c) = self.heap.pop() {
+            let (lo, hi) = (c.lo(), c.hi());
+            let now = (self.version[lo] & 0xffff, self.version[hi] & 0xffff);
+            // (The disjointness check only matters if a version wrapped, with over 65,535
+            // cameras: a stale entry must never merge two boxes of one camera.)
+            if self.root[lo] == lo
+                && self.root[hi] == hi
+                && now == c.versions()
+                && self.disjoint(lo, hi)
+            {
+                self.merge(lo, hi);
+            }
+        }
+    }
+
+    /// The final clusters as identities, numbered by their first box, members sorted.
+    fn identities(&self) -> Vec<Identity> {
+        let ev = self.ev;
+        let mut clusters: Vec<Vec<usize>> = (0..ev.cam_of.len())
+            .filter(|&r| self.root[r] == r)
+            .map(|r| {
+                let mut m: Vec<usize> = self.members(r).collect();
+                m.sort_unstable();
+                m
+            })
+            .collect();
+        clusters.sort_unstable_by_key(|m| m[0]);
+        clusters
+            .into_iter()
+            .enumerate()
+            .map(|(id, m)| Identity {
+                id,
+                confidence: confidence(ev, &m).clamp(0.0, 1.0),
+                members: m
+                    .iter()
+                    .map(|&i| (ev.cam_of[i], i - ev.offsets[ev.cam_of[i]]))
+                    .collect(),
+            })
+            .collect()
+    }
+}
+
+impl Clustering<'_> {
+    fn disjoint(&self, r: usize, s: usize) -> bool {
+        let w = self.words;
+        self.cams[r * w..(r + 1) * w]
+            .iter()
+            .zip(&self.cams[s * w..(s + 1) * w])
+            .all(|(x, y)| x & y == 0)
+    }
+
+    fn members(&self, r: usize) -> impl Iterator<Item = usize> + '_ {
+        std::iter::successors(Some(r), |&i| Some(self.next[i]).filter(|&j| j != END))
+    }
+
+    /// Total weight between clusters `r` and `s`.
+    fn weight(&self, r: usize, s: usize) -> f32 {
+        let mut w = 0f32;
+        for u in self.members(r) {
+            for v in self.members(s) {
+                w += self.ev.pair_weight(u, v);
+            }
+        }
+        w
+    }
+
+    /// The candidate for merging `r` and `s`, when they may merge.
+    fn candidate(&self, r: usize, s: usize) -> Option<Candidate> {
+        if !self.disjoint(r, s) {
+            return None;
+        }
+        let w = self.weight(r, s);
+        let (lo, hi) = (r.min(s), r.max(s));
+        (w >= 0.0).then(|| Candidate::new(w, lo, hi, (self.version[lo], self.version[hi])))
+    }
+
+    fn merge(&mut self, r: usize, s: usize) {
+        let w = self.words;
+        for i in 0..w {
+            self.cams[r * w + i] |= self.cams[s * w + i];
+        }
+        let mut i = s;
+        while i != END {
+            self.root[i] = r;
+            i = self.next[i];
+        }
+        self.next[self.last[r]] = s;
+        self.last[r] = self.last[s];
+        self.version[r] += 1;
+        self.version[s] += 1;
+        // Fresh candidates for every cluster a member of the merged one has a partner in.
+        let c = self.ev.cameras;
+        let mut seen = std::mem::take(&mut self.seen);
+        seen.clear();
+        let mut u = r;
+        while u != END {
+            for &p in &self.ev.partner[u * c..(u + 1) * c] {
+                if p == NONE {
+                    continue;
+                }
+                let k = self.root[p as usize];
+                if k != r && !seen.contains(&k) {
+                    seen.push(k);
+                    if let Some(cand) = self.candidate(r, k) {
+                        self.heap.push(cand);
+                    }
+                }
+            }
+            u = self.next[u];
+        }
+        self.seen = seen;
+    }
+}
+
+/// Builds the identities of one frame.
+///
+/// `view_sizes[c]` is the number of boxes of camera `c` (0 for cameras without boxes or
+/// that did not report); `pairs` holds the Hungarian assignments of camera pairs (`cam_a !=
+/// cam_b`, assignment indices within `view_sizes`; pairs that break this, and repeats of a
+/// camera pair, are ignored with a warning). Every box ends in exactly one identity, and
+/// identities are ordered by their first member. See the module documentation.
+pub fn build_identities(
+    view_sizes: &[usize],
+    pairs: &[ViewPair],
+    cfg: &IdentityConfig,
+) -> Vec<Identity> {
+    let (offsets, n) = box_offsets(view_sizes);
+    if n == 0 {
+        return Vec::new();
+    }
+    if n >= NONE as usize {
+        tracing::warn!(
+            boxes = n,
+            "frame too large for identities; every box left alone"
+        );
+        return singletons(view_sizes);
+    }
+    let ev = Evidence::collect(view_sizes, offsets, pairs, cfg);
+    let mut cl = Clustering::new(&ev);
+    cl.run();
+    cl.identities()
+}
+
+/// Where each camera's boxes start in the frame's box numbering (plus the total at the end),
+/// and the total.
+fn box_offsets(view_sizes: &[usize]) -> (Vec<usize>, usize) {
+    let mut offsets = Vec::with_capacity(view_sizes.len() + 1);
+    let mut n = 0usize;
+    for &s in view_sizes {
+        offsets.push(n);
+        n += s;
+    }
+    offsets.push(n);
+    (offsets, n)
+}
+
+impl Evidence {
+    /// The frame's evidence: every camera pair's Hungarian partners and confidences, then each
+    /// pair's weight (its confidence margin and what the third cameras say).
+    fn collect(
+        view_sizes: &[usize],
+        offsets: Vec<usize>,
+        pairs: &[ViewPair],
+        cfg: &IdentityConfig,
+    ) -> Self {
+        let cameras = view_sizes.len();
+        let cam_of: Vec<usize> = view_sizes
+            .iter()
+            .enumerate()
+            .flat_map(|(c, &s)| std::iter::repeat_n(c, s))
+            .collect();
+        let n = cam_of.len();
+        let mut ev = Evidence {
+            cameras,
+            offsets,
+            cam_of,
+            partner: vec![NONE; n * cameras],
+            conf: vec![0f32; n * cameras],
+            weight: vec![0f32; n * cameras],
+            threshold: cfg.threshold,
+            conflict: cfg.conflict_penalty,
+        };
+        ev.add_partners(view_sizes, pairs, cfg);
+        ev.weigh(cfg);
+        ev
+    }
+
+    /// Records the Hungarian pairs of every consistent camera pair (the first of a repeated
+    /// pair; inconsistent ones are ignored with a warning), one partner per box and camera.
+    fn add_partners(&mut self, view_sizes: &[usize], pairs: &[ViewPair], cfg: &IdentityConfig) {
+        let cameras = self.cameras;
+        let mut seen_pair = vec![false; cameras * cameras];
+        for pair in pairs {
+            let (ca, cb) = (pair.cam_a, pair.cam_b);
+            let fits = ca != cb
+                && ca < cameras
+                && cb < cameras
+                && pair
+                    .matching
+                    .assignment
+                    .iter()
+                    .all(|p| p.a < view_sizes[ca] && p.b < view_sizes[cb]);
+            if !fits || seen_pair[ca * cameras + cb] {
+                tracing::warn!(
+                    cam_a = ca,
+                    cam_b = cb,
+                    "ignoring inconsistent or repeated camera pair"
+                );
+                continue;
+            }
+            seen_pair[ca * cameras + cb] = true;
+            seen_pair[cb * cameras + ca] = true;
+            for p in &pair.matching.assignment {
+                let (u, v) = (self.offsets[ca] + p.a, self.offsets[cb] + p.b);
+                let (ku, kv) = (u * cameras + cb, v * cameras + ca);
+                if self.partner[ku] != NONE || self.partner[kv] != NONE {
+                    continue; // not one-to-one: keep the first
+                }
+                let c = cfg.confidence(p);
+                self.partner[ku] = v as u32;
+                self.partner[kv] = u as u32;
+                self.conf[ku] = c;
+                self.conf[kv] = c;
+            }
+        }
+    }
+
+    /// Each Hungarian pair's weight: its confidence margin over the threshold, plus the
+    /// support bonus for every third camera that matches both boxes to one box, minus the
+    /// dissent penalty for every third camera that matches them to different boxes.
+    fn weigh(&mut self, cfg: &IdentityConfig) {
+        let cameras = self.cameras;
+        for u in 0..self.cam_of.len() {
+            let cu = self.cam_of[u];
+            for cv in 0..cameras {
+                let k = u * cameras + cv;
+                let v = self.partner[k];
+                if v == NONE || (v as usize) < u {
+                    continue;
+                }
+                let v = v as usize;
+                let mut w = self.conf[k] - cfg.threshold;
+                let (pu, pv) = (
+                    &self.partner[u * cameras..(u + 1) * cameras],
+                    &self.partner[v * cameras..(v + 1) * cameras],
+                );
+                for c in 0..cameras {
+                    if c == cu || c == cv || pu[c] == NONE || pv[c] == NONE {
+                        continue;
+                    }
+                    w += if pu[c] == pv[c] {
+                        cfg.support_bonus
+                    } else {
+                        -cfg.dissent_penalty
+                    };
+                }
+                self.weight[k] = w;
+                self.weight[v * cameras + cu] = w;
+            }
+        }
+    }
+}
+
+/// See the module documentation.
+fn confidence(ev: &Evidence, members: &[usize]) -> f32 {
+    let c = ev.cameras;
+    // How likely the members are one person: the mean confidence of the Hungarian pairs
+    // inside the identity (1 for a single box).
+    let (mut sum, mut k) = (0f32, 0u32);
+    for &u in members {
+        for &v in members {
+            let kk = u * c + ev.cam_of[v];
+            if u < v && ev.cam_of[u] != ev.cam_of[v] && ev.partner[kk] == v as u32 {
+                sum += ev.conf[kk];
+                k += 1;
+            }
+        }
+    }
+    let together = match (members.len(), k) {
+        (1, _) => 1.0,
+        (_, 0) => 0.0,
+        _ => sum / k as f32,
+    };
+    // How likely it is complete: for every other camera, the chance that the best Hungarian
+    // partner of any member there is someone else.
+    let mut complete = 1f32;
+    let mut any_partner = false;
+    for cam in 0..c {
+        if members.iter().any(|&u| ev.cam_of[u] == cam) {
+            continue;
+        }
+        let best = members
+            .iter()
+            .filter(|&&u| ev.partner[u * c + cam] != NONE)
+            .map(|&u| ev.conf[u * c + cam].clamp(0.0, 1.0))
+            .reduce(f32::max);
+        if let Some(best) = best {
+            any_partner = true;
+            complete *= 1.0 - best;
+        }
+    }
+    if let [u] = members
+        && !any_partner
+        && ev.others_have_boxes(*u)
+    {
+        // No camera pair assigned this box although other cameras have boxes (its view has
+        // more boxes than theirs): a coin toss.
+        return 0.5;
+    }
+    together * complete
+}
+
+/// Every box its own identity (with no evidence to go on).
+fn singletons(view_sizes: &[usize]) -> Vec<Identity> {
+    view_sizes
+        .iter()
+        .enumerate()
+        .flat_map(|(c, &k)| (0..k).map(move |i| (c, i)))
+        .enumerate()
+        .map(|(id, m)| Identity {
+            id,
+            confidence: 0.0,
+            members: vec![m],
+        })
+        .collect()
+}
+
+/// The matches of camera pair `p` implied by `identities`, sorted by `a`, scored with `S`.
+pub fn identity_matches(identities: &[Identity], p: &ViewPair) -> Vec<Match> {
+    let s = &p.matching.scores;
+    let mut matches: Vec<Match> = identities
+        .iter()
+        .filter_map(|ident| {
+            let a = ident.members.iter().find(|m| m.0 == p.cam_a)?.1;
+            let b = ident.members.iter().find(|m| m.0 == p.cam_b)?.1;
+            let score = *s.get((a, b))?;
+            Some(Match { a, b, score })
+        })
+        .collect();
+    matches.sort_unstable_by_key(|m| m.a);
+    matches
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::matching::hungarian;
+    use ndarray::{Array2, array};
+    use proptest::prelude::*;
+
+    /// A camera pair matched on `scores` (as `S`; distance = 1 − S, so a calibration is not
+    /// needed), with its SPEC §3 matches at `threshold`.
+    fn pair(cam_a: usize, cam_b: usize, scores: Array2<f32>, threshold: f32) -> ViewPair {
+        let assignment: Vec<Assigned> = hungarian(scores.mapv(|v| 1.0 - v).view())
+            .into_iter()
+            .map(|(a, b)| Assigned {
+                a,
+                b,
+                score: scores[(a, b)],
+                distance: 1.0 - scores[(a, b)],
+            })
+            .collect();
+        let matches = assignment
+            .iter()
+            .filter(|p| p.score >= threshold)
+            .map(|p| Match {
+                a: p.a,
+                b: p.b,
+                score: p.score,
+            })
+            .collect();
+        ViewPair {
+            cam_a,
+            cam_b,
+            matching: PairMatching {
+                scores,
+                assignment,
+                matches,
+            },
+        }
+    }
+
+    /// Pairwise matches implied by identities: for every camera pair of `pairs`, the boxes that
+    /// share an identity, scored with that pair's `S`. Returns `pairs` with their matches
+    /// replaced (scores and assignment unchanged, matches sorted by `a`), so evaluation can score
+    /// identities exactly like pairwise matching.
+    fn pairs_from_identities(identities: &[Identity], pairs: &[ViewPair]) -> Vec<ViewPair> {
+        pairs
+            .iter()
+            .map(|p| ViewPair {
+                cam_a: p.cam_a,
+                cam_b: p.cam_b,
+                matching: PairMatching {
+                    scores: p.matching.scores.clone(),
+                    assignment: p.matching.assignment.clone(),
+                    matches: identity_matches(identities, p),
+                },
+            })
+            .collect()
+    }
+
+    fn members(ids: &[Identity]) -> Vec<Vec<(usize, usize)>> {
+        ids.iter().map(|i| i.members.clone()).collect()
+    }
+
+    fn cfg(t: f32) -> IdentityConfig {
+        IdentityConfig::new(None, t)
+    }
+
+    #[test]
+    fn consistent_triangle_forms_two_identities() {
+        let s = array![[0.9f32, 0.1], [0.1, 0.8]];
+        let pairs = vec![
+            pair(0, 1, s.clone(), 0.4),
+            pair(0, 2, s.clone(), 0.4),
+            pair(1, 2, s, 0.4),
+        ];
+        let ids = build_identities(&[2, 2, 2], &pairs, &cfg(0.4));
+        assert_eq!(
+            members(&ids),
+            vec![vec![(0, 0), (1, 0), (2, 0)], vec![(0, 1), (1, 1), (2, 1)]]
+        );
+        assert!((ids[0].confidence - 0.9).abs() < 1e-6);
+        assert!((ids[1].confidence - 0.8).abs() < 1e-6);
+        assert_eq!(ids[1].id, 1);
+        let derived = pairs_from_identities(&ids, &pairs);
+        for (d, p) in derived.iter().zip(&pairs) {
+            assert_eq!(d.matching.matches, p.matching.matches);
+        }
+    }
+
+    #[test]
+    fn third_views_repair_a_pairwise_mistake() {
+        // Persons p = A0,B0,C0 and q = A1,B1,C1; the Hungarian of A–B swaps them.
+        let ab = array![[0.60f32, 0.62], [0.62, 0.60]];
+        let ac = array![[0.95f32, 0.10], [0.10, 0.95]];
+        let bc = array![[0.95f32, 0.10], [0.10, 0.95]];
+        let pairs = vec![
+            pair(0, 1, ab, 0.4),
+            pair(0, 2, ac, 0.4),
+            pair(1, 2, bc, 0.4),
+        ];
+        let wrong: Vec<_> = pairs[0]
+            .matching
+            .matches
+            .iter()
+            .map(|m| (m.a, m.b))
+            .collect();
+        assert_eq!(
+            wrong,
+            vec![(0, 1), (1, 0)],
+            "pairwise A–B is wrong by design"
+        );
+        let ids = build_identities(&[2, 2, 2], &pairs, &cfg(0.4));
+        assert_eq!(
+            members(&ids),
+            vec![vec![(0, 0), (1, 0), (2, 0)], vec![(0, 1), (1, 1), (2, 1)]]
+        );
+        let derived = pairs_from_identities(&ids, &pairs);
+        let fixed: Vec<_> = derived[0]
+            .matching
+            .matches
+            .iter()
+            .map(|m| (m.a, m.b))
+            .collect();
+        assert_eq!(fixed, vec![(0, 0), (1, 1)]);
+    }
+
+    #[test]
+    fn exclusivity_keeps_one_box_per_camera() {
+        let s01 = array![[0.9f32, 0.85]];
+        let s02 = array![[0.9f32]];
+        let s12 = array![[0.9f32], [0.88]];
+        let pairs = vec![
+            pair(0, 1, s01, 0.4),
+            pair(0, 2, s02, 0.4),
+            pair(1, 2, s12, 0.4),
+        ];
+        let ids = build_identities(&[1, 2, 1], &pairs, &cfg(0.4));
+        assert_eq!(
+            members(&ids),
+            vec![vec![(0, 0), (1, 0), (2, 0)], vec![(1, 1)]]
+        );
+        assert_eq!(
+            ids[1].confidence, 0.5,
+            "B1 has no Hungarian partner: a coin toss"
+        );
+        // The full identity: mean pair confidence 0.9, nothing missing.
+        assert!((ids[0].confidence - 0.9).abs() < 1e-6);
+    }
+
+    #[test]
+    fn threshold_empty_views_and_lone_cameras() {
+        let pairs = vec![pair(0, 2, array![[0.3f32]], 0.4)];
+        let ids = build_identities(&[1, 0, 1], &pairs, &cfg(0.4));
+        assert_eq!(members(&ids), vec![vec![(0, 0)], vec![(2, 0)]]);
+        assert!((ids[0].confidence - 0.7).abs() < 1e-6);
+        assert!(build_identities(&[0, 0], &[], &cfg(0.4)).is_empty());
+        let ids = build_identities(&[3], &[], &cfg(0.4));
+        assert_eq!(ids.len(), 3);
+        assert!(ids.iter().all(|i| i.confidence == 1.0));
+    }
+
+    #[test]
+    fn calibrated_confidence_keeps_a_lone_match() {
+        // One person per view: S = 1 − d/(d + 1e-6) ≈ 0 drops it; the calibrated
+        // probability of its small distance keeps it.
+        let mut p = pair(0, 1, array![[1e-6f32]], 0.5);
+        p.matching.assignment[0].distance = 0.3;
+        assert!(p.matching.matches.is_empty());
+        let cal = Calibration {
+            distances: vec![0.5, 2.0],
+            probabilities: vec![0.95, 0.05],
+            false_share: 0.5,
+            samples: [100, 100],
+        };
+        let c = IdentityConfig::new(Some(Arc::new(cal)), 0.5);
+        assert_eq!(c.kept(&p.matching).len(), 1);
+        let ids = build_identities(&[1, 1], &[p], &c);
+        assert_eq!(members(&ids), vec![vec![(0, 0), (1, 0)]]);
+        assert!((ids[0].confidence - 0.95).abs() < 1e-6);
+    }
+
+    #[test]
+    fn many_cameras_beyond_one_bitset_word() {
+        let c = 70;
+        let mut pairs = Vec::new();
+        for a in 0..c {
+            for b in a + 1..c {
+                pairs.push(pair(a, b, array![[0.9f32]], 0.4));
+            }
+        }
+        let ids = build_identities(&vec![1; c], &pairs, &cfg(0.4));
+        assert_eq!(ids.len(), 1);
+        assert_eq!(ids[0].members.len(), c);
+    }
+
+    #[test]
+    fn bad_pairs_are_ignored_not_a_panic() {
+        let good = pair(0, 1, array![[0.9f32]], 0.4);
+        let mut wrong_shape = pair(0, 1, array![[0.9f32, 0.1]], 0.4);
+        wrong_shape.matching.assignment[0].b = 7;
+        let same_cam = pair(1, 1, array![[0.9f32]], 0.4);
+        let far = pair(0, 9, array![[0.9f32]], 0.4);
+        let mut nan = pair(0, 1, array![[0.9f32]], 0.4);
+        nan.matching.assignment[0].score = f32::NAN;
+        let ids = build_identities(&[1, 1], &[wrong_shape, same_cam, far, good, nan], &cfg(0.4));
+        assert_eq!(members(&ids), vec![vec![(0, 0), (1, 0)]]);
+    }
+
+    /// Straightforward O(N⁴) clustering with the same weights and tie-breaks (clusters named
+    /// by their smallest box), to check the heap-based implementation against.
+    fn naive(
+        sizes: &[usize],
+        pairs: &[ViewPair],
+        cfg: &IdentityConfig,
+    ) -> Vec<Vec<(usize, usize)>> {
+        let nodes: Vec<(usize, usize)> = sizes
+            .iter()
+            .enumerate()
+            .flat_map(|(c, &k)| (0..k).map(move |i| (c, i)))
+            .collect();
+        let partner = |x: (usize, usize), cam: usize| -> Option<(usize, f32)> {
+            pairs.iter().find_map(|p| {
+                if (p.cam_a, p.cam_b) == (x.0, cam) {
+                    let m = p.matching.assignment.iter().find(|m| m.a == x.1)?;
+                    Some((m.b, cfg.confidence(m)))
+                } else if (p.cam_a, p.cam_b) == (cam, x.0) {
+                    let m = p.matching.assignment.iter().find(|m| m.b == x.1)?;
+                    Some((m.a, cfg.confidence(m)))
+                } else {
+                    None
+                }
+            })
+        };
+        let pw = |x: (usize, usize), y: (usize, usize)| -> f32 {
+            if x.0 == y.0 {
+                return 0.0;
+            }
+            match partner(x, y.0) {
+                Some((b, c)) if b == y.1 => {
+                    let mut w = c - cfg.threshold;
+                    for cam in 0..sizes.len() {
+                        if cam == x.0 || cam == y.0 {
+                            continue;
+                        }
+                        if let (Some((p, _)), Some((q, _))) = (partner(x, cam), partner(y, cam)) {
+                            w += if p == q {
+                                cfg.support_bonus
+                            } else {
+                                -cfg.dissent_penalty
+                            };
+                        }
+                    }
+                    w
+                }
+                _ => {
+                    let kept = |z: (usize, usize), cam| {
+                        partner(z, cam).is_some_and(|(_, c)| c >= cfg.threshold)
+                    };
+                    if kept(x, y.0) || kept(y, x.0) {
+                        -cfg.conflict_penalty
+                    } else {
+                        0.0
+                    }
+                }
+            }
+        };
+        let linked = |x: (usize, usize), y: (usize, usize)| {
+            x.0 != y.0 && partner(x, y.0).is_some_and(|(b, _)| b == y.1)
+        };
+        let mut clusters: Vec<Vec<usize>> = (0..nodes.len()).map(|i| vec![i]).collect();
+        loop {
+            let mut pick: Option<(f32, usize, usize, (usize, usize))> = None;
+            for a in 0..clusters.len() {
+                for b in a + 1..clusters.len() {
+                    let (ca, cb) = (&clusters[a], &clusters[b]);
+                    let clash = ca
+                        .iter()
+                        .any(|&i| cb.iter().any(|&j| nodes[i].0 == nodes[j].0));
+                    let any_link = ca
+                        .iter()
+                        .any(|&i| cb.iter().any(|&j| linked(nodes[i], nodes[j])));
+                    if clash || !any_link {
+                        continue;
+                    }
+                    let w: f32 = ca
+                        .iter()
+                        .flat_map(|&i| cb.iter().map(move |&j| (i, j)))
+                        .map(|(i, j)| pw(nodes[i], nodes[j]))
+                        .sum();
+                    if w < 0.0 {
+                        continue;
+                    }
+                    let names = (ca[0].min(cb[0]), ca[0].max(cb[0]));
+                    if pick.is_none_or(|(pw, _, _, pn)| w > pw || (w == pw && names < pn)) {
+                        pick = Some((w, a, b, names));
+                    }
+                }
+            }
+            let Some((_, a, b, _)) = pick else { break };
+            let moved = clusters.remove(b);
+            clusters[a].extend(moved);
+            clusters[a].sort_unstable();
+        }
+        clusters.sort_unstable_by_key(|c| c[0]);
+        clusters
+            .into_iter()
+            .map(|c| c.into_iter().map(|i| nodes[i]).collect())
+            .collect()
+    }
+
+    /// Camera pairs from grid scores (multiples of 1/64, so with the dyadic parameters of
+    /// [`grid_cfg`] every partial sum is exact and both implementations see equal ties).
+    fn grid_pairs(sizes: &[usize], raw: &[u8]) -> Vec<ViewPair> {
+        let mut k = 0;
+        let mut pairs = Vec::new();
+        for a in 0..sizes.len() {
+            for b in a + 1..sizes.len() {
+                if sizes[a] == 0 || sizes[b] == 0 {
+                    continue;
+                }
+                let s = Array2::from_shape_fn((sizes[a], sizes[b]), |_| {
+                    k += 1;
+                    raw[k % raw.len()] as f32 / 64.0
+                });
+                pairs.push(pair(a, b, s, 0.0));
+            }
+        }
+        pairs
+    }
+
+    fn grid_cfg(t: u8) -> IdentityConfig {
+        IdentityConfig {
+            calibration: None,
+            threshold: t as f32 / 64.0,
+            support_bonus: 0.125,
+            dissent_penalty: 0.0625,
+            conflict_penalty: 0.3125,
+        }
+    }
+
+    /// Persons with a position; camera `c` sees each person with probability ~0.8 and
+    /// scores boxes by closeness: a consistent scene (every pair's Hungarian is right).
+    fn consistent_scene(
+        cams: usize,
+        people: &[u8],
+        seen: &[bool],
+    ) -> (Vec<usize>, Vec<ViewPair>, Vec<Vec<usize>>) {
+        // views[c] = person index of each box of camera c.
+        let views: Vec<Vec<usize>> = (0..cams)
+            .map(|c| {
+                (0..people.len())
+                    .filter(|&p| seen[(c * people.len() + p) % seen.len()])
+                    .collect()
+            })
+            .collect();
+        let sizes: Vec<usize> = views.iter().map(Vec::len).collect();
+        let mut pairs = Vec::new();
+        for a in 0..cams {
+            for b in a + 1..cams {
+                if sizes[a] == 0 || sizes[b] == 0 {
+                    continue;
+                }
+                let s = Array2::from_shape_fn((sizes[a], sizes[b]), |(i, j)| {
+                    let (p, q) = (views[a][i], views[b][j]);
+                    if p == q {
+                        0.9
+                    } else {
+                        let d = (people[p] as f32 - people[q] as f32).abs() / 255.0;
+                        (0.3 * d).min(0.3)
+                    }
+                });
+                pairs.push(pair(a, b, s, 0.0));
+            }
+        }
+        (sizes, pairs, views)
+    }
+
+    proptest! {
+        #[test]
+        fn heap_clustering_equals_naive(
+            sizes in proptest::collection::vec(0usize..6, 2..6),
+            raw in proptest::collection::vec(0u8..=64, 400),
+            t in 0u8..=64,
+        ) {
+            let pairs = grid_pairs(&sizes, &raw);
+            let c = grid_cfg(t);
+            let got = build_identities(&sizes, &pairs, &c);
+            prop_assert_eq!(members(&got), naive(&sizes, &pairs, &c));
+            // Camera-exclusive, every box once, deterministic.
+            let mut all: Vec<(usize, usize)> = Vec::new();
+            for ident in &got {
+                let mut cams: Vec<usize> = ident.members.iter().map(|m| m.0).collect();
+                cams.dedup();
+                prop_assert_eq!(cams.len(), ident.members.len());
+                prop_assert!((0.0..=1.0).contains(&ident.confidence));
+                all.extend(&ident.members);
+            }
+            all.sort_unstable();
+            prop_assert_eq!(all.len(), sizes.iter().sum::<usize>());
+            all.dedup();
+            prop_assert_eq!(all.len(), sizes.iter().sum::<usize>());
+            prop_assert_eq!(build_identities(&sizes, &pairs, &c), got);
+        }
+
+        #[test]
+        fn two_cameras_equal_pairwise(
+            n in 0usize..8, m in 0usize..8,
+            raw in proptest::collection::vec(0u8..=64, 64),
+            t in 0u8..=64,
+        ) {
+            let pairs = grid_pairs(&[n, m], &raw);
+            let c = grid_cfg(t);
+            let ids = build_identities(&[n, m], &pairs, &c);
+            for (p, d) in pairs.iter().zip(pairs_from_identities(&ids, &pairs)) {
+                let kept: Vec<_> = c.kept(&p.matching).iter().map(|x| (x.a, x.b)).collect();
+                let got: Vec<_> = d.matching.matches.iter().map(|x| (x.a, x.b)).collect();
+                prop_assert_eq!(got, kept);
+            }
+        }
+
+        #[test]
+        fn consistent_matches_unchanged_and_one_swap_repaired(
+            people in proptest::collection::vec(0u8..=255, 2..7),
+            seen in proptest::collection::vec(proptest::bool::weighted(0.8), 1..40),
+            swap in 0usize..100,
+        ) {
+            let cams = 4;
+            let (sizes, mut pairs, views) = consistent_scene(cams, &people, &seen);
+            let c = IdentityConfig::new(None, 0.5);
+            // Truth: one identity per person seen by any camera.
+            let mut truth: Vec<Vec<(usize, usize)>> = (0..people.len())
+                .map(|p| (0..cams).filter_map(|cam| views[cam].iter().position(|&q| q == p).map(|i| (cam, i))).collect::<Vec<_>>())
+                .filter(|m: &Vec<_>| !m.is_empty())
+                .collect();
+            truth.sort();
+            let mut got = members(&build_identities(&sizes, &pairs, &c));
+            got.sort();
+            prop_assert_eq!(&got, &truth);
+            // Corrupt one pair: swap the partners of two of its matches (both stay kept).
+            if pairs.is_empty() { return Ok(()); }
+            let k = swap % pairs.len();
+            let asg = &mut pairs[k].matching.assignment;
+            if asg.len() < 2 { return Ok(()); }
+            let (x, y) = (swap % asg.len(), (swap / 7 + 1 + swap % asg.len()) % asg.len());
+            if x == y { return Ok(()); }
+            let (bx, by) = (asg[x].b, asg[y].b);
+            asg[x].b = by;
+            asg[y].b = bx;
+            let (pa, pb) = (pairs[k].cam_a, pairs[k].cam_b);
+            // Repairable when both swapped persons are seen by the two other cameras.
+            let persons = [views[pa][pairs[k].matching.assignment[x].a], views[pa][pairs[k].matching.assignment[y].a]];
+            let others: Vec<usize> = (0..cams).filter(|&q| q != pa && q != pb).collect();
+            let witnessed = persons.iter().all(|p| others.iter().all(|&q| views[q].contains(p)));
+            if witnessed {
+                let mut got = members(&build_identities(&sizes, &pairs, &c));
+                got.sort();
+                prop_assert_eq!(got, truth);
+            }
+        }
+    }
+}

@@ -1,0 +1,610 @@
+//! The SPEC §7 JSONL recording: a scene header line, then one camera batch per line.
+//!
+//! - [`read_recording`] loads a whole file (or stdin, path `-`) into a [`Recording`].
+//! - [`RecordingReader`] streams it: the header first, then an iterator of validated
+//!   [`Batch`]es, so huge files never sit in memory.
+//! - [`RecordingWriter`] / [`write_recording`] write the same format back.
+//!
+//! Every problem in a file is an [`Error::Format`] naming the source, the 1-based line and the
+//! problem (malformed JSON, missing header, unknown camera, duplicate batch, invalid detection,
+//! inconsistent appearance length).
+//!
+//! Boxes that overlap their image's edge are clipped to the image
+//! ([`Detection::clip_to_image`], the one rule shared with the server) and counted in
+//! [`ReadStats::clipped_boxes`]. A [`lenient`](RecordingReader::lenient) reader (the trainer's
+//! default) skips a broken box or a broken line with a count instead of failing: real
+//! detector output is careless, and one bad box must not abort a 71,000-box recording.
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::fs::File;
+use std::io::{BufRead, BufReader, BufWriter, Read, Write};
+use std::ops::RangeBounds;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crossview_core::{Batch, CameraSpec, Detection, Frame, SceneSpec};
+use crossview_core::{Error, Result};
+
+/// A whole recording in memory: the scene and its frames sorted by frame id.
+/// `frames[k].views[c]` is `None` when camera `c` sent no batch for that frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Recording {
+    pub scene: SceneSpec,
+    pub frames: Vec<Frame>,
+}
+
+/// The first line of a recording: `{"scene": {...}}`.
+#[derive(Debug, Serialize, Deserialize)]
+struct Header {
+    scene: SceneSpec,
+}
+
+/// Borrowed form of [`Header`] for writing without cloning the scene.
+#[derive(Serialize)]
+struct HeaderRef<'a> {
+    scene: &'a SceneSpec,
+}
+
+/// Borrowed form of [`Batch`] for writing a frame's view without cloning its detections.
+#[derive(Serialize)]
+struct BatchRef<'a> {
+    camera: &'a str,
+    frame_id: u64,
+    detections: &'a [Detection],
+}
+
+/// Checks a scene is usable: a name, at least one camera, unique camera names, positive sizes.
+fn validate_scene(scene: &SceneSpec) -> std::result::Result<(), String> {
+    if scene.name.is_empty() {
+        return Err("scene.name is empty".into());
+    }
+    if scene.cameras.is_empty() {
+        return Err("scene.cameras is empty".into());
+    }
+    let mut names = HashSet::new();
+    for (i, cam) in scene.cameras.iter().enumerate() {
+        if cam.name.is_empty() {
+            return Err(format!("scene.cameras[{i}].name is empty"));
+        }
+        if !names.insert(cam.name.as_str()) {
+            return Err(format!(
+                "scene.cameras[{i}].name '{}' is used twice",
+                cam.name
+            ));
+        }
+        if cam.width == 0 || cam.height == 0 {
+            return Err(format!(
+                "scene.cameras[{i}] ('{}') has a zero image size {}x{}",
+                cam.name, cam.width, cam.height
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Tracks the appearance-vector length of a scene: fixed by the first vector seen.
+#[derive(Debug, Default, Clone, Copy)]
+struct AppearanceLen(Option<usize>);
+
+impl AppearanceLen {
+    /// Validates one detection (field `detections[i]...`), checks that all appearance vectors
+    /// share one length and clips the box to `cam`'s image; returns whether it was clipped.
+    fn check(&mut self, i: usize, det: &mut Detection, cam: &CameraSpec) -> Result<bool> {
+        let field = format!("detections[{i}]");
+        det.validate(&field, self.0)?;
+        let clipped = det.clip_to_image(&field, cam)?;
+        if self.0.is_none() {
+            self.0 = det.appearance.as_ref().map(Vec::len);
+        }
+        Ok(clipped)
+    }
+}
+
+/// What a reader clipped and skipped so far.
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
+pub struct ReadStats {
+    /// Boxes clipped to their image (they overlapped its edge).
+    pub clipped_boxes: usize,
+    /// Broken boxes skipped (lenient readers only): NaN, inverted, entirely outside the
+    /// image, bad score or appearance.
+    pub skipped_boxes: usize,
+    /// Broken lines skipped (lenient readers only): malformed JSON, unknown camera,
+    /// duplicate batch.
+    pub skipped_lines: usize,
+    /// The first problem skipped, for the summary.
+    pub first_problem: Option<String>,
+}
+
+impl ReadStats {
+    fn skipped(&mut self, problem: &Error) {
+        self.first_problem
+            .get_or_insert_with(|| problem.to_string());
+    }
+}
+
+/// Streams a recording: reads and validates the header on construction, then yields one
+/// validated [`Batch`] per line. Blank lines are skipped (they still count for line numbers).
+///
+/// Validation per batch: known camera, no second batch for the same camera and frame, every
+/// detection valid ([`Detection::validate`]) and all appearance vectors of the same length.
+/// After the first error the iterator is fused (yields `None`). A
+/// [`lenient`](Self::lenient) reader skips broken boxes and lines instead (counted in
+/// [`stats`](Self::stats)); only I/O errors end it.
+pub struct RecordingReader<R> {
+    source_name: String,
+    reader: R,
+    line_no: usize,
+    buf: String,
+    scene: SceneSpec,
+    appearance: AppearanceLen,
+    /// Per frame id, a bitset of the cameras that reported it (duplicate detection);
+    /// `None` when the check is switched off.
+    seen: Option<HashMap<u64, Box<[u64]>>>,
+    done: bool,
+    lenient: bool,
+    stats: ReadStats,
+}
+
+impl RecordingReader<BufReader<Box<dyn Read>>> {
+    /// Opens `path` (`-` = stdin) and reads its header.
+    pub fn open(path: impl AsRef<Path>) -> Result<Self> {
+        let path = path.as_ref();
+        let inner: Box<dyn Read> = if path == Path::new("-") {
+            Box::new(std::io::stdin())
+        } else {
+            Box::new(File::open(path).map_err(|e| Error::io(path, e))?)
+        };
+        RecordingReader::new(BufReader::new(inner), path.display().to_string())
+    }
+}
+
+impl<R: BufRead> RecordingReader<R> {
+    /// Wraps a reader; `source_name` names it in error messages. Reads and validates the
+    /// header line.
+    pub fn new(reader: R, source_name: impl Into<String>) -> Result<Self> {
+        let mut this = RecordingReader {
+            source_name: source_name.into(),
+            reader,
+            line_no: 0,
+            buf: String::new(),
+            scene: SceneSpec {
+                name: String::new(),
+                cameras: Vec::new(),
+            },
+            appearance: AppearanceLen::default(),
+            seen: Some(HashMap::new()),
+            done: false,
+            lenient: false,
+            stats: ReadStats::default(),
+        };
+        let Some(line) = this.next_line()? else {
+            return Err(this.format_err(
+                1,
+                "empty recording: missing the scene header line {\"scene\": {...}}",
+            ));
+        };
+        let header: Header = serde_json::from_str(&line).map_err(|e| {
+            this.format_err(
+                this.line_no,
+                format!(
+                    "invalid scene header (expected {{\"scene\": {{\"name\", \"cameras\"}}}}): {e}"
+                ),
+            )
+        })?;
+        validate_scene(&header.scene)
+            .map_err(|m| this.format_err(this.line_no, format!("invalid scene header: {m}")))?;
+        this.scene = header.scene;
+        Ok(this)
+    }
+
+    /// The scene declared by the header.
+    pub fn scene(&self) -> &SceneSpec {
+        &self.scene
+    }
+
+    /// Switches off duplicate-batch detection, which keeps one small bitset per frame id
+    /// seen; for unbounded streams whose memory must stay flat.
+    pub fn without_duplicate_check(mut self) -> Self {
+        self.seen = None;
+        self
+    }
+
+    /// Skips broken boxes and lines (with a count) instead of failing on the first.
+    pub(crate) fn lenient(mut self) -> Self {
+        self.lenient = true;
+        self
+    }
+
+    /// Boxes clipped and boxes and lines skipped so far.
+    pub fn stats(&self) -> &ReadStats {
+        &self.stats
+    }
+
+    /// The 1-based number of the last line read.
+    pub fn line(&self) -> usize {
+        self.line_no
+    }
+
+    fn format_err(&self, line: usize, message: impl Into<String>) -> Error {
+        Error::Format {
+            source_name: self.source_name.clone(),
+            line,
+            message: message.into(),
+        }
+    }
+
+    /// The next non-blank line (trimmed), or `None` at end of input.
+    fn next_line(&mut self) -> Result<Option<String>> {
+        loop {
+            self.buf.clear();
+            let n = self
+                .reader
+                .read_line(&mut self.buf)
+                .map_err(|e| Error::io(&self.source_name, e))?;
+            if n == 0 {
+                return Ok(None);
+            }
+            self.line_no += 1;
+            let trimmed = self.buf.trim();
+            if !trimmed.is_empty() {
+                return Ok(Some(trimmed.to_string()));
+            }
+        }
+    }
+
+    /// Parses and validates one batch line.
+    fn parse_batch(&mut self, line: &str) -> Result<Batch> {
+        let mut batch: Batch = serde_json::from_str(line).map_err(|e| {
+            let message = if line.contains("\"scene\"") {
+                format!("unexpected second scene header or malformed batch: {e}")
+            } else {
+                format!("malformed batch: {e}")
+            };
+            self.format_err(self.line_no, message)
+        })?;
+        let cam = self.scene.camera_index(&batch.camera).map_err(|_| {
+            self.format_err(
+                self.line_no,
+                format!(
+                    "unknown camera '{}' (scene '{}' has {})",
+                    batch.camera,
+                    self.scene.name,
+                    camera_list(&self.scene)
+                ),
+            )
+        })?;
+        let words = self.scene.cameras.len().div_ceil(64);
+        let first_report = self.seen.as_mut().is_none_or(|seen| {
+            let bits = seen
+                .entry(batch.frame_id)
+                .or_insert_with(|| vec![0u64; words].into_boxed_slice());
+            let (word, bit) = (cam / 64, 1u64 << (cam % 64));
+            let fresh = bits[word] & bit == 0;
+            bits[word] |= bit;
+            fresh
+        });
+        if !first_report {
+            return Err(self.format_err(
+                self.line_no,
+                format!(
+                    "duplicate batch: camera '{}' already reported frame {}",
+                    batch.camera, batch.frame_id
+                ),
+            ));
+        }
+        let camera = &self.scene.cameras[cam];
+        let mut kept = Vec::with_capacity(batch.detections.len());
+        for (i, mut det) in std::mem::take(&mut batch.detections)
+            .into_iter()
+            .enumerate()
+        {
+            match self.appearance.check(i, &mut det, camera) {
+                Ok(clipped) => {
+                    self.stats.clipped_boxes += usize::from(clipped);
+                    kept.push(det);
+                }
+                Err(e) => {
+                    let e = self.format_err(
+                        self.line_no,
+                        format!("camera '{}' frame {}: {e}", batch.camera, batch.frame_id),
+                    );
+                    if !self.lenient {
+                        return Err(e);
+                    }
+                    self.stats.skipped_boxes += 1;
+                    self.stats.skipped(&e);
+                }
+            }
+        }
+        batch.detections = kept;
+        Ok(batch)
+    }
+}
+
+fn camera_list(scene: &SceneSpec) -> String {
+    scene
+        .cameras
+        .iter()
+        .map(|c| c.name.as_str())
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+impl<R: BufRead> Iterator for RecordingReader<R> {
+    type Item = Result<Batch>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        if self.done {
+            return None;
+        }
+        loop {
+            let result = match self.next_line() {
+                Ok(None) => {
+                    self.done = true;
+                    return None;
+                }
+                Ok(Some(line)) => match self.parse_batch(&line) {
+                    Err(e @ Error::Format { .. }) if self.lenient => {
+                        self.stats.skipped_lines += 1;
+                        self.stats.skipped(&e);
+                        continue;
+                    }
+                    r => r,
+                },
+                Err(e) => Err(e),
+            };
+            if result.is_err() {
+                self.done = true;
+            }
+            return Some(result);
+        }
+    }
+}
+
+/// Reads a whole recording from `path` (`-` = stdin) into memory, frames sorted by id; fails
+/// on the first broken box or line.
+pub fn read_recording(path: impl AsRef<Path>) -> Result<Recording> {
+    read_recording_with(path, true).map(|(rec, _)| rec)
+}
+
+/// [`read_recording`], `strict` or lenient (skipping broken boxes and lines, see
+/// [`RecordingReader::lenient`]), with what was clipped and skipped.
+pub fn read_recording_with(path: impl AsRef<Path>, strict: bool) -> Result<(Recording, ReadStats)> {
+    let mut reader = RecordingReader::open(path)?;
+    if !strict {
+        reader = reader.lenient();
+    }
+    let scene = reader.scene().clone();
+    // The reader already validated cameras, duplicates and detections.
+    let mut assembler = FrameAssembler::new(&scene);
+    for batch in reader.by_ref() {
+        let batch = batch?;
+        let cam = scene.camera_index(&batch.camera)?;
+        assembler.insert(cam, batch.frame_id, batch.detections);
+    }
+    Ok((
+        Recording {
+            frames: assembler.finish(),
+            scene,
+        },
+        reader.stats().clone(),
+    ))
+}
+
+/// Collects batches into frames keyed (and so sorted) by frame id.
+struct FrameAssembler {
+    num_cameras: usize,
+    frames: BTreeMap<u64, Frame>,
+}
+
+impl FrameAssembler {
+    fn new(scene: &SceneSpec) -> Self {
+        FrameAssembler {
+            num_cameras: scene.cameras.len(),
+            frames: BTreeMap::new(),
+        }
+    }
+
+    /// Stores camera `cam`'s detections; returns false if it had already reported the frame.
+    fn insert(&mut self, cam: usize, frame_id: u64, detections: Vec<Detection>) -> bool {
+        let n = self.num_cameras;
+        let frame = self
+            .frames
+            .entry(frame_id)
+            .or_insert_with(|| Frame::new(frame_id, n));
+        if frame.views[cam].is_some() {
+            return false;
+        }
+        frame.views[cam] = Some(detections);
+        true
+    }
+
+    fn finish(self) -> Vec<Frame> {
+        self.frames.into_values().collect()
+    }
+}
+
+impl Recording {
+    /// Assembles frames from batches in any order: frames sorted by frame id, `views[c]` is
+    /// `None` where camera `c` sent nothing. Fails on an invalid scene, an unknown camera
+    /// ([`Error::UnknownCamera`]), a second batch for the same camera and frame
+    /// ([`Error::DuplicateBatch`]) or an invalid detection / inconsistent appearance length
+    /// ([`Error::InvalidArgument`], field `<camera>@<frame>.detections[i]...`). Boxes
+    /// overlapping the image edge are clipped ([`Detection::clip_to_image`]).
+    pub fn from_batches(
+        scene: SceneSpec,
+        batches: impl IntoIterator<Item = Batch>,
+    ) -> Result<Recording> {
+        validate_scene(&scene).map_err(|m| Error::invalid("scene", m))?;
+        let mut appearance = AppearanceLen::default();
+        let mut assembler = FrameAssembler::new(&scene);
+        for mut batch in batches {
+            let cam = scene.camera_index(&batch.camera)?;
+            for (i, det) in batch.detections.iter_mut().enumerate() {
+                appearance
+                    .check(i, det, &scene.cameras[cam])
+                    .map_err(|e| match e {
+                        Error::InvalidArgument { field, reason } => Error::InvalidArgument {
+                            field: format!("{}@{}.{field}", batch.camera, batch.frame_id),
+                            reason,
+                        },
+                        other => other,
+                    })?;
+            }
+            if !assembler.insert(cam, batch.frame_id, batch.detections) {
+                return Err(Error::DuplicateBatch {
+                    scene: scene.name.clone(),
+                    camera: batch.camera,
+                    frame_id: batch.frame_id,
+                });
+            }
+        }
+        Ok(Recording {
+            frames: assembler.finish(),
+            scene,
+        })
+    }
+
+    /// The same recording with every ground-truth id removed (what training may see).
+    pub fn without_ids(&self) -> Recording {
+        let mut out = self.clone();
+        for det in out
+            .frames
+            .iter_mut()
+            .flat_map(|f| f.views.iter_mut().flatten())
+            .flat_map(|v| v.iter_mut())
+        {
+            det.id = None;
+        }
+        out
+    }
+
+    /// The frames whose id lies in `range` (e.g. `1440..=1795`), same scene.
+    pub fn filter_frames(&self, range: impl RangeBounds<u64>) -> Recording {
+        Recording {
+            scene: self.scene.clone(),
+            frames: self
+                .frames
+                .iter()
+                .filter(|f| range.contains(&f.frame_id))
+                .cloned()
+                .collect(),
+        }
+    }
+
+    /// Total number of boxes over all frames and views.
+    pub fn num_boxes(&self) -> usize {
+        self.frames.iter().map(Frame::num_boxes).sum()
+    }
+
+    /// The frame ids, ascending.
+    pub fn frame_ids(&self) -> Vec<u64> {
+        self.frames.iter().map(|f| f.frame_id).collect()
+    }
+
+    /// The recording as batches, frame by frame in camera order: a camera that reported
+    /// nobody gives an empty list; a camera that did not report is omitted.
+    pub fn batches(&self) -> impl Iterator<Item = Batch> + '_ {
+        self.frames.iter().flat_map(move |f| {
+            f.views.iter().enumerate().filter_map(move |(c, v)| {
+                v.as_ref().map(|dets| Batch {
+                    camera: self.scene.cameras[c].name.clone(),
+                    frame_id: f.frame_id,
+                    detections: dets.clone(),
+                })
+            })
+        })
+    }
+}
+
+/// Writes a recording: the header on creation, then batch lines; buffered. Call
+/// [`RecordingWriter::finish`] to flush and surface write errors.
+pub struct RecordingWriter<W: Write> {
+    dest_name: String,
+    writer: BufWriter<W>,
+    scene: SceneSpec,
+}
+
+impl RecordingWriter<Box<dyn Write>> {
+    /// Creates (truncates) `path` (`-` = stdout) and writes the header.
+    pub fn create(path: impl AsRef<Path>, scene: &SceneSpec) -> Result<Self> {
+        let path = path.as_ref();
+        let inner: Box<dyn Write> = if path == Path::new("-") {
+            Box::new(std::io::stdout())
+        } else {
+            Box::new(File::create(path).map_err(|e| Error::io(path, e))?)
+        };
+        RecordingWriter::new(inner, path.display().to_string(), scene)
+    }
+}
+
+impl<W: Write> RecordingWriter<W> {
+    /// Wraps a writer (`dest_name` names it in errors) and writes the header line.
+    pub fn new(writer: W, dest_name: impl Into<String>, scene: &SceneSpec) -> Result<Self> {
+        validate_scene(scene).map_err(|m| Error::invalid("scene", m))?;
+        let mut this = RecordingWriter {
+            dest_name: dest_name.into(),
+            writer: BufWriter::new(writer),
+            scene: scene.clone(),
+        };
+        this.write_json(&HeaderRef { scene })?;
+        Ok(this)
+    }
+
+    fn write_json<T: Serialize>(&mut self, value: &T) -> Result<()> {
+        let io_err = |e: std::io::Error| Error::io(&self.dest_name, e);
+        serde_json::to_writer(&mut self.writer, value)
+            .map_err(|e| io_err(std::io::Error::other(e)))?;
+        self.writer.write_all(b"\n").map_err(io_err)
+    }
+
+    /// Writes one batch line. The camera must belong to the scene.
+    pub fn write_batch(&mut self, batch: &Batch) -> Result<()> {
+        self.scene.camera_index(&batch.camera)?;
+        self.write_json(batch)
+    }
+
+    /// Writes every reported view of `frame` (in camera order) as a batch line.
+    pub fn write_frame(&mut self, frame: &Frame) -> Result<()> {
+        if frame.views.len() != self.scene.cameras.len() {
+            return Err(Error::invalid(
+                format!("frame {}.views", frame.frame_id),
+                format!(
+                    "has {} views, scene '{}' has {} cameras",
+                    frame.views.len(),
+                    self.scene.name,
+                    self.scene.cameras.len()
+                ),
+            ));
+        }
+        for (c, view) in frame.views.iter().enumerate() {
+            if let Some(dets) = view {
+                let camera = self.scene.cameras[c].name.clone();
+                self.write_json(&BatchRef {
+                    camera: &camera,
+                    frame_id: frame.frame_id,
+                    detections: dets,
+                })?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Flushes and returns the inner writer.
+    pub fn finish(self) -> Result<W> {
+        let name = self.dest_name;
+        self.writer
+            .into_inner()
+            .map_err(|e| Error::io(&name, e.into_error()))
+    }
+}
+
+/// Writes a whole recording to `path` (`-` = stdout).
+pub fn write_recording(path: impl AsRef<Path>, recording: &Recording) -> Result<()> {
+    let mut writer = RecordingWriter::create(path, &recording.scene)?;
+    for frame in &recording.frames {
+        writer.write_frame(frame)?;
+    }
+    writer.finish()?;
+    Ok(())
+}

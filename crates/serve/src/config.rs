@@ -1,0 +1,232 @@
+//! Server configuration: the library-side settings the CLI (`crossview serve`) fills from flags
+//! and environment variables, and tests fill directly.
+use std::path::PathBuf;
+use std::time::Duration;
+
+use crossview_core::{Error, Result};
+
+/// A model to serve: scene `name` from ONNX file `path`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ModelSpec {
+    /// Scene name (defaults to the file stem).
+    pub name: String,
+    /// The SPEC §8 ONNX model file.
+    pub path: PathBuf,
+}
+
+impl ModelSpec {
+    /// Parses `[NAME=]path.onnx`; the scene name defaults to the file stem.
+    pub fn parse(s: &str) -> Result<Self> {
+        let (name, path) = match s.split_once('=') {
+            Some((n, p)) if !n.is_empty() && !n.contains('/') => (Some(n.to_string()), p),
+            _ => (None, s),
+        };
+        let path = PathBuf::from(path);
+        let name = match name {
+            Some(n) => n,
+            None => path
+                .file_stem()
+                .and_then(|s| s.to_str())
+                .filter(|s| !s.is_empty())
+                .ok_or_else(|| Error::invalid("--model", format!("no scene name in '{s}'")))?
+                .to_string(),
+        };
+        validate_scene_name(&name)?;
+        Ok(ModelSpec { name, path })
+    }
+}
+
+/// Scene names travel in URL paths: keep them to `[A-Za-z0-9._-]`, 1..=64 characters.
+pub(crate) fn validate_scene_name(name: &str) -> Result<()> {
+    let ok = !name.is_empty()
+        && name.len() <= 64
+        && name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'));
+    if ok {
+        Ok(())
+    } else {
+        Err(Error::invalid(
+            "scene",
+            format!("'{name}' must be 1-64 characters of [A-Za-z0-9._-]"),
+        ))
+    }
+}
+
+/// Size and cost caps that keep one request from costing unbounded memory or time.
+///
+/// Association cost model ([`super::cost`]): a frame with `n_c` boxes in camera `c` costs
+/// `Σ_{a<b} n_a · n_b · min(n_a, n_b)` units (one Hungarian assignment per camera pair);
+/// one unit is about 2–3.5 ns of one core. `max_frame_cost` refuses the batch
+/// (or unary request) that would push a frame over it, and `max_detections` is chosen so
+/// that two full cameras fit.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Limits {
+    /// Largest HTTP body or gRPC message in bytes.
+    pub max_request_bytes: usize,
+    /// Most cameras a scene (model) may have.
+    pub max_cameras: usize,
+    /// Most detections in one camera batch.
+    pub max_detections: usize,
+    /// Longest appearance vector.
+    pub max_appearance_len: usize,
+    /// Frames queued for the encoder per scene before new work is shed (RESOURCE_EXHAUSTED).
+    pub queue_capacity: usize,
+    /// Frame results buffered per subscriber before it is dropped as too slow.
+    pub subscriber_buffer: usize,
+    /// Most association cost units one frame may reach (see the cost model above).
+    pub max_frame_cost: u64,
+    /// A frame whose association has not started this long after its first batch is
+    /// published with an error instead (keeps a backlog of expensive frames from delaying
+    /// every later one without bound).
+    pub frame_deadline: Duration,
+    /// Frame-id window (see [`super::sync`]): batches further than this from the scene's
+    /// current frame ids are refused as out of range.
+    pub frame_window: u64,
+    /// A JSON Lines body stops early once more than this many lines were rejected and
+    /// rejected lines outnumber accepted ones.
+    pub max_rejected_lines: usize,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            max_request_bytes: 4 << 20,
+            max_cameras: 64,
+            max_detections: 512,
+            max_appearance_len: 4096,
+            queue_capacity: 256,
+            subscriber_buffer: 1024,
+            max_frame_cost: 200_000_000,
+            frame_deadline: Duration::from_secs(2),
+            frame_window: super::sync::DEFAULT_FRAME_WINDOW,
+            max_rejected_lines: 100,
+        }
+    }
+}
+
+/// Connection limits and timeouts of the shared gRPC + HTTP port (HTTP/1 and HTTP/2 alike).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ConnectionLimits {
+    /// Most open connections. At the cap a new connection closes the longest-idle one (no
+    /// request in flight); when none is idle the new connection is refused (closed at once).
+    pub max_connections: usize,
+    /// A TLS handshake and a request head (HTTP/1) must complete within this time.
+    pub header_read_timeout: Duration,
+    /// A connection with no request in flight for this long is closed (covers slow or
+    /// absent request heads on HTTP/2 too).
+    pub idle_timeout: Duration,
+    /// An HTTP request body, or one gRPC message once started, must arrive within this time.
+    pub body_timeout: Duration,
+    /// Most concurrent HTTP/2 streams (requests) per connection.
+    pub http2_max_streams: u32,
+    /// HTTP/2 keep-alive ping interval; a peer that does not answer within the same time is
+    /// disconnected.
+    pub http2_keepalive: Duration,
+    /// A result subscriber (gRPC `Subscribe`/`Stream`, SSE) that has not taken a published
+    /// result for this long while results wait for it is disconnected.
+    pub subscriber_stall_timeout: Duration,
+}
+
+impl Default for ConnectionLimits {
+    fn default() -> Self {
+        ConnectionLimits {
+            max_connections: 512,
+            header_read_timeout: Duration::from_secs(10),
+            idle_timeout: Duration::from_secs(60),
+            body_timeout: Duration::from_secs(30),
+            http2_max_streams: 100,
+            http2_keepalive: Duration::from_secs(30),
+            subscriber_stall_timeout: Duration::from_secs(30),
+        }
+    }
+}
+
+/// TLS certificate chain and private key (PEM files).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TlsConfig {
+    pub cert: PathBuf,
+    pub key: PathBuf,
+}
+
+/// Everything [`super::Server`] needs. Its `Debug` output redacts the API keys.
+#[derive(Clone)]
+pub struct ServeConfig {
+    /// Models to load, one scene each.
+    pub models: Vec<ModelSpec>,
+    /// How long a frame waits for missing cameras before it leaves as partial.
+    pub sync_timeout: Duration,
+    /// Pending frames per scene beyond which the oldest leaves as partial.
+    pub max_pending_frames: usize,
+    /// Accepted bearer tokens; empty = no authentication.
+    pub api_keys: Vec<String>,
+    /// Serve TLS (rustls) when set.
+    pub tls: Option<TlsConfig>,
+    /// Size, cost and queue caps.
+    pub limits: Limits,
+    /// Connection cap and timeouts.
+    pub connections: ConnectionLimits,
+    /// How long graceful shutdown waits for open connections after flushing.
+    pub shutdown_grace: Duration,
+}
+
+impl std::fmt::Debug for ServeConfig {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ServeConfig")
+            .field("models", &self.models)
+            .field("sync_timeout", &self.sync_timeout)
+            .field("max_pending_frames", &self.max_pending_frames)
+            .field(
+                "api_keys",
+                &format_args!("<{} redacted>", self.api_keys.len()),
+            )
+            .field("tls", &self.tls)
+            .field("limits", &self.limits)
+            .field("connections", &self.connections)
+            .field("shutdown_grace", &self.shutdown_grace)
+            .finish()
+    }
+}
+
+impl Default for ServeConfig {
+    fn default() -> Self {
+        ServeConfig {
+            models: Vec::new(),
+            sync_timeout: Duration::from_millis(200),
+            max_pending_frames: 64,
+            api_keys: Vec::new(),
+            tls: None,
+            limits: Limits::default(),
+            connections: ConnectionLimits::default(),
+            shutdown_grace: Duration::from_secs(10),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn model_spec_parses_name_and_stem() {
+        let m = ModelSpec::parse("lab=/tmp/x/model.onnx").unwrap();
+        assert_eq!(m.name, "lab");
+        assert_eq!(m.path, PathBuf::from("/tmp/x/model.onnx"));
+        let m = ModelSpec::parse("/tmp/x/wildtrack.onnx").unwrap();
+        assert_eq!(m.name, "wildtrack");
+        assert!(ModelSpec::parse("bad name=/x.onnx").is_err());
+    }
+
+    #[test]
+    fn debug_output_redacts_api_keys() {
+        let c = ServeConfig {
+            api_keys: vec!["s3cret".into()],
+            ..ServeConfig::default()
+        };
+        let text = format!("{c:?}");
+        assert!(
+            !text.contains("s3cret") && text.contains("<1 redacted>"),
+            "{text}"
+        );
+    }
+}

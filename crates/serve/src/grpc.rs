@@ -1,0 +1,352 @@
+//! The gRPC transport (tonic): the one `Error → Status` mapping and a thin `Association` implementation over [`Service`].
+use std::pin::Pin;
+use std::sync::Arc;
+
+use futures::{Stream, StreamExt};
+use tokio::sync::{mpsc, watch};
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::{Code, Request, Response, Status, Streaming};
+
+use crossview_api::convert::{associate_from_pb, batch_from_pb, result_to_pb, scene_to_pb};
+use crossview_api::pb;
+use crossview_core::Error;
+
+use super::service::Service;
+
+/// The one `Error → gRPC status` mapping; the message is the error's, truncated.
+pub(crate) fn status(e: Error) -> Status {
+    {
+        let code = match &e {
+            Error::InvalidArgument { .. } | Error::Format { .. } => Code::InvalidArgument,
+            Error::UnknownScene(_) | Error::UnknownCamera { .. } => Code::NotFound,
+            Error::LateBatch { .. } => Code::FailedPrecondition,
+            Error::DuplicateBatch { .. } => Code::AlreadyExists,
+            Error::FrameOutOfRange { .. } => Code::OutOfRange,
+            Error::ResourceExhausted(_)
+            | Error::DeadlineExceeded(_)
+            | Error::SubscriberStalled(_) => Code::ResourceExhausted,
+            Error::Unauthenticated(_) => Code::Unauthenticated,
+            Error::Unavailable(_) => Code::Unavailable,
+            Error::Io { .. }
+            | Error::Model { .. }
+            | Error::Runtime { .. }
+            | Error::Encoder(_)
+            | Error::Internal { .. }
+            | Error::Training(_) => Code::Internal,
+        };
+        Status::new(code, super::truncate_echo(&e.report()))
+    }
+}
+
+/// Pushes one protobuf batch — or a message that did not decode as one (see [`super::push`])
+/// — and turns the outcome into its acknowledgement. An undecodable message's ack has no
+/// scene, camera or frame id: acks come in message order.
+fn push_one(svc: &Service, b: crossview_core::Result<pb::Batch>) -> pb::BatchAck {
+    let (scene, camera, frame_id) = match &b {
+        Ok(b) => (echo(&b.scene), echo(&b.camera), b.frame_id),
+        Err(_) => (String::new(), String::new(), 0),
+    };
+    let outcome = b
+        .and_then(batch_from_pb)
+        .inspect_err(|e| svc.metrics().error(e))
+        .and_then(|(scene, batch)| svc.push(&scene, batch));
+    let (code, message, kind) = match outcome {
+        Ok(_) => (0, String::new(), String::new()),
+        Err(e) => {
+            let kind = e.kind().to_string();
+            let status = status(e);
+            (status.code() as i32, status.message().to_string(), kind)
+        }
+    };
+    pb::BatchAck {
+        scene,
+        camera,
+        frame_id,
+        code,
+        message,
+        kind,
+    }
+}
+
+pub(crate) type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
+
+/// One item of what a `Push` or `Stream` call reads: a batch, or a message that is not one
+/// (see [`super::push`]); or the status the transport ends the call with (the call's status).
+pub(crate) type Incoming = Result<crossview_core::Result<pb::Batch>, Status>;
+
+/// Forwards a `Stream` call's scene results to its response until the call is over: the client
+/// cancelled (the subscriber is dropped at once, not at the next frame), the scene's results
+/// ended (shutdown), or the client half-closed and the result of the newest frame it had
+/// accepted went out (at most `linger` after the half-close: sync timeout + frame deadline).
+async fn forward_results(
+    mut results: super::service::ResultStream,
+    tx: mpsc::Sender<Result<pb::StreamResponse, Status>>,
+    mut half_closed: watch::Receiver<Option<Option<u64>>>,
+    linger: std::time::Duration,
+) {
+    use pb::stream_response::Event;
+    let mut newest_sent: Option<u64> = None;
+    let mut deadline: Option<tokio::time::Instant> = None;
+    let mut watching = true;
+    loop {
+        // Ends once the newest accepted frame's result is out (or nothing was accepted).
+        if let Some(last) = *half_closed.borrow() {
+            if last.is_none_or(|l| newest_sent.is_some_and(|s| s >= l)) {
+                return;
+            }
+            deadline.get_or_insert_with(|| tokio::time::Instant::now() + linger);
+        }
+        let linger_over = async {
+            match deadline {
+                Some(t) => tokio::time::sleep_until(t).await,
+                None => std::future::pending().await,
+            }
+        };
+        tokio::select! {
+            r = results.next() => {
+                let Some(r) = r else { return };
+                let item = r
+                    .map(|r| {
+                        newest_sent = Some(newest_sent.map_or(r.frame_id, |s| s.max(r.frame_id)));
+                        pb::StreamResponse {
+                            event: Some(Event::Result(result_to_pb(&r))),
+                        }
+                    })
+                    .map_err(status);
+                if tx.send(item).await.is_err() {
+                    return;
+                }
+            }
+            changed = half_closed.changed(), if watching => {
+                if changed.is_err() {
+                    // The reader task is gone; what it said last (if anything) stands.
+                    watching = false;
+                    if half_closed.borrow().is_none() {
+                        return;
+                    }
+                }
+            }
+            _ = tx.closed() => return,
+            _ = linger_over => return,
+        }
+    }
+}
+
+/// The tonic service: a thin shell over [`Service`].
+#[derive(Debug, Clone)]
+pub(crate) struct GrpcService {
+    svc: Arc<Service>,
+    stall_timeout: std::time::Duration,
+}
+
+impl GrpcService {
+    /// Wraps the shared domain service; result subscribers that stop reading for
+    /// `stall_timeout` are disconnected.
+    pub fn new(svc: Arc<Service>, stall_timeout: std::time::Duration) -> Self {
+        GrpcService { svc, stall_timeout }
+    }
+
+    /// The acknowledgements of a `Push` call: one per message, in order, until the client
+    /// half-closes, the server shuts down or the transport ends the call (its status is the
+    /// call's: `messages` yields it and ends).
+    pub(crate) fn push_acks<S>(&self, messages: S) -> BoxStream<pb::BatchAck>
+    where
+        S: Stream<Item = Incoming> + Send + 'static,
+    {
+        let svc = self.svc.clone();
+        let stop = svc.shutting_down();
+        Box::pin(
+            messages
+                .take_until(stop)
+                .map(move |m| m.map(|b| push_one(&svc, b))),
+        )
+    }
+
+    /// The responses of a `Stream` call: one ack per message, in order (a message that is not
+    /// a batch gets an INVALID_ARGUMENT ack and fixes no scene), interleaved with the results
+    /// of the scene fixed by the first accepted batch.
+    pub(crate) fn stream_responses<S>(&self, request: Request<S>) -> BoxStream<pb::StreamResponse>
+    where
+        S: Stream<Item = Incoming> + Send + 'static,
+    {
+        use pb::stream_response::Event;
+        let svc = self.svc.clone();
+        let conn = request
+            .extensions()
+            .get::<super::conn::ConnHandle>()
+            .cloned();
+        let stall = Some(self.stall_timeout);
+        let input = request.into_inner();
+        let (tx, rx) = mpsc::channel::<Result<pb::StreamResponse, Status>>(64);
+        tokio::spawn(async move {
+            tokio::pin!(input);
+            let mut scene: Option<String> = None;
+            // The newest frame id this call had accepted; sent to the result forwarder when the
+            // client half-closes, so the call ends once that frame's result is out.
+            let mut last_accepted: Option<u64> = None;
+            let (half_closed, half_closed_rx) = watch::channel::<Option<Option<u64>>>(None);
+            let stop = svc.shutting_down();
+            tokio::pin!(stop);
+            loop {
+                let msg = tokio::select! {
+                    m = input.next() => m,
+                    _ = &mut stop => None,
+                    // The client went away: stop reading (the forwarder notices too).
+                    _ = tx.closed() => break,
+                };
+                let b = match msg {
+                    None => break,
+                    Some(Err(s)) => {
+                        let _ = tx.send(Err(s)).await;
+                        break;
+                    }
+                    Some(Ok(b)) => b,
+                };
+                let ack = match (&scene, b) {
+                    // Not a batch: refused like one, the scene still to be fixed.
+                    (_, Err(e)) => push_one(&svc, Err(e)),
+                    (None, Ok(b)) => match svc.subscribe(&b.scene, conn.clone(), stall) {
+                        Ok(results) => {
+                            scene = Some(b.scene.clone());
+                            let linger = svc
+                                .scene(&b.scene)
+                                .map(|s| {
+                                    let d = s.describe();
+                                    std::time::Duration::from_millis(d.sync_timeout_ms)
+                                        + s.limits().frame_deadline
+                                })
+                                .unwrap_or_default();
+                            tokio::spawn(forward_results(
+                                results,
+                                tx.clone(),
+                                half_closed_rx.clone(),
+                                linger,
+                            ));
+                            push_one(&svc, Ok(b))
+                        }
+                        Err(e) => reject(&b, e),
+                    },
+                    (Some(s), Ok(b)) if *s != b.scene => reject(
+                        &b,
+                        Error::invalid(
+                            "scene",
+                            format!(
+                                "this stream serves scene '{s}', got '{}'",
+                                super::truncate_echo(&b.scene)
+                            ),
+                        ),
+                    ),
+                    (Some(_), Ok(b)) => push_one(&svc, Ok(b)),
+                };
+                if ack.code == 0 {
+                    last_accepted =
+                        Some(last_accepted.map_or(ack.frame_id, |l| l.max(ack.frame_id)));
+                }
+                let item = pb::StreamResponse {
+                    event: Some(Event::Ack(ack)),
+                };
+                if tx.send(Ok(item)).await.is_err() {
+                    break;
+                }
+            }
+            let _ = half_closed.send(Some(last_accepted));
+        });
+        Box::pin(ReceiverStream::new(rx))
+    }
+}
+
+#[tonic::async_trait]
+impl pb::association_server::Association for GrpcService {
+    async fn associate(
+        &self,
+        request: Request<pb::AssociateRequest>,
+    ) -> Result<Response<pb::FrameResult>, Status> {
+        let (scene, req) = associate_from_pb(request.into_inner())
+            .inspect_err(|e| self.svc.metrics().error(e))
+            .map_err(status)?;
+        let r = self.svc.associate(&scene, req).await.map_err(status)?;
+        Ok(Response::new(result_to_pb(&r)))
+    }
+
+    type PushStream = BoxStream<pb::BatchAck>;
+
+    async fn push(
+        &self,
+        request: Request<Streaming<pb::Batch>>,
+    ) -> Result<Response<Self::PushStream>, Status> {
+        // The server routes Push and Stream to `super::push::Routes`, which keeps the call
+        // open past a message that does not decode; these generated entry points (tonic's
+        // framing: such a message ends the call) serve only direct users of
+        // `AssociationServer`.
+        let messages = request.into_inner().map(|m| m.map(Ok));
+        Ok(Response::new(self.push_acks(messages)))
+    }
+
+    type SubscribeStream = BoxStream<pb::FrameResult>;
+
+    async fn subscribe(
+        &self,
+        request: Request<pb::SubscribeRequest>,
+    ) -> Result<Response<Self::SubscribeStream>, Status> {
+        let conn = request
+            .extensions()
+            .get::<super::conn::ConnHandle>()
+            .cloned();
+        let stall = Some(self.stall_timeout);
+        let results = self
+            .svc
+            .subscribe(&request.into_inner().scene, conn, stall)
+            .map_err(status)?;
+        let out = results.map(|r| r.map(|r| result_to_pb(&r)).map_err(status));
+        Ok(Response::new(Box::pin(out)))
+    }
+
+    type StreamStream = BoxStream<pb::StreamResponse>;
+
+    async fn stream(
+        &self,
+        request: Request<Streaming<pb::Batch>>,
+    ) -> Result<Response<Self::StreamStream>, Status> {
+        // See `push` above.
+        let request = request.map(|messages| messages.map(|m| m.map(Ok)));
+        Ok(Response::new(self.stream_responses(request)))
+    }
+
+    async fn list_scenes(
+        &self,
+        _request: Request<pb::ListScenesRequest>,
+    ) -> Result<Response<pb::ListScenesResponse>, Status> {
+        Ok(Response::new(pb::ListScenesResponse {
+            scenes: self.svc.scenes().into_iter().map(scene_to_pb).collect(),
+        }))
+    }
+
+    async fn get_scene(
+        &self,
+        request: Request<pb::GetSceneRequest>,
+    ) -> Result<Response<pb::Scene>, Status> {
+        let s = self
+            .svc
+            .describe(&request.into_inner().scene)
+            .map_err(status)?;
+        Ok(Response::new(scene_to_pb(s)))
+    }
+}
+
+/// A client-supplied name as echoed in an ack (bounded, see [`super::truncate_echo`]).
+fn echo(s: &str) -> String {
+    super::truncate_echo(s).into_owned()
+}
+
+fn reject(b: &pb::Batch, e: Error) -> pb::BatchAck {
+    let kind = e.kind().to_string();
+    let status = status(e);
+    pb::BatchAck {
+        scene: echo(&b.scene),
+        camera: echo(&b.camera),
+        frame_id: b.frame_id,
+        code: status.code() as i32,
+        message: status.message().to_string(),
+        kind,
+    }
+}

@@ -1,0 +1,461 @@
+//! The streaming association service: gRPC (tonic) and HTTP JSON (axum) over one port.
+//!
+//! Layout (one job per module): [`config`] settings; [`registry`] model loading; [`sync`] the
+//! pure frame synchronizer; [`scene`] a live scene (validation, admission, the encoder worker
+//! thread, results broadcast); [`service`] the one domain API; [`grpc`] and [`http`] thin
+//! transports with the error mappings (wire types and conversions: `crossview-api`) ([`push`]: the gRPC `Push`
+//! and `Stream` calls' own request framing, so a bad message is refused alone); [`auth`], [`tls`],
+//! [`metrics`]; this module binds them into one listener with graceful shutdown.
+//!
+//! Tests and the CLI start it the same way: [`Server::load`] (or [`run`]) then
+//! [`Server::serve`] on a bound listener with a shutdown future.
+
+pub mod auth;
+pub mod body;
+pub mod config;
+pub(crate) mod conn;
+pub mod cost;
+pub mod grpc;
+pub mod http;
+pub mod metrics;
+pub mod push;
+pub mod registry;
+pub mod scene;
+pub mod service;
+pub mod sync;
+pub mod tls;
+
+use std::borrow::Cow;
+use std::future::Future;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use axum::Router;
+use axum::extract::{MatchedPath, Request, State};
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
+use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
+use hyper_util::server::conn::auto;
+use hyper_util::service::TowerToHyperService;
+use tokio::net::TcpListener;
+use tower::ServiceExt;
+
+pub use config::{ConnectionLimits, Limits, ModelSpec, ServeConfig, TlsConfig};
+pub use scene::{Scene, SceneInfo};
+pub use service::Service;
+
+use crossview_core::Encoder;
+use crossview_core::{Error, Result};
+
+/// Longest error message (in bytes) sent back to a client: messages echo client input
+/// (camera and scene names, JSON decoding errors), which must not come back unbounded.
+pub(crate) const MAX_ERROR_MESSAGE: usize = 512;
+
+/// `text` cut to at most [`MAX_ERROR_MESSAGE`] bytes (at a character boundary), saying how
+/// long it was.
+pub(crate) fn truncate_echo(text: &str) -> Cow<'_, str> {
+    if text.len() <= MAX_ERROR_MESSAGE {
+        return Cow::Borrowed(text);
+    }
+    let mut end = MAX_ERROR_MESSAGE;
+    while !text.is_char_boundary(end) {
+        end -= 1;
+    }
+    Cow::Owned(format!("{}… ({} bytes in all)", &text[..end], text.len()))
+}
+
+/// A configured server with its scenes started, ready to [`serve`](Server::serve).
+#[derive(Debug)]
+pub struct Server {
+    service: Arc<Service>,
+    config: ServeConfig,
+}
+
+impl Server {
+    /// Loads every model of `config` (blocking: ONNX Runtime sessions) and starts its scenes.
+    pub fn load(config: ServeConfig) -> Result<Self> {
+        let mut scenes = Vec::new();
+        for m in &config.models {
+            scenes.push(registry::load_model(m, &config.limits)?);
+        }
+        Self::from_scenes(config, scenes)
+    }
+
+    /// Starts a server over already loaded encoders (tests, fuzzing, embedding).
+    pub fn from_scenes(
+        config: ServeConfig,
+        scenes: Vec<(SceneInfo, Box<dyn Encoder>)>,
+    ) -> Result<Self> {
+        let metrics = metrics::Metrics::new();
+        let mut started = Vec::new();
+        let mut names = std::collections::BTreeSet::new();
+        for (info, encoder) in scenes {
+            if !names.insert(info.spec.name.clone()) {
+                return Err(Error::invalid(
+                    "--model",
+                    format!("scene '{}' given twice", info.spec.name),
+                ));
+            }
+            tracing::info!(scene = %info.spec.name, cameras = info.spec.cameras.len(), version = %info.version, "scene loaded");
+            started.push(Scene::start(
+                info,
+                encoder,
+                config.sync_timeout,
+                config.max_pending_frames,
+                config.limits,
+                metrics.clone(),
+            )?);
+        }
+        Ok(Server {
+            service: Arc::new(
+                Service::new(started, metrics)
+                    .with_stall_timeout(config.connections.subscriber_stall_timeout),
+            ),
+            config,
+        })
+    }
+
+    /// The domain service (for in-process use).
+    pub fn service(&self) -> &Arc<Service> {
+        &self.service
+    }
+
+    /// The combined gRPC + HTTP router with auth and request accounting.
+    pub(crate) async fn router(&self) -> Result<Router> {
+        build_router(&self.service, &self.config).await
+    }
+
+    /// Serves gRPC and HTTP on `listener` until `shutdown` resolves, then shuts down gracefully:
+    /// stops intake, flushes pending frames as partial results to subscribers, waits up to
+    /// `shutdown_grace` for open connections and returns.
+    pub async fn serve(
+        self,
+        listener: TcpListener,
+        shutdown: impl Future<Output = ()> + Send,
+    ) -> Result<()> {
+        let router = self.router().await?;
+        let tls = self.config.tls.as_ref().map(tls::acceptor).transpose()?;
+        let addr = listener.local_addr().ok();
+        tracing::info!(?addr, tls = tls.is_some(), "serving gRPC + HTTP");
+        for scene in self.service.scene_list() {
+            spawn_timer(scene, self.service.shutting_down());
+        }
+        let limits = self.config.connections;
+        let connections = conn::Connections::new(limits, self.service.metrics().clone());
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let mut builder = auto::Builder::new(TokioExecutor::new());
+        builder
+            .http1()
+            .timer(TokioTimer::new())
+            .header_read_timeout(limits.header_read_timeout);
+        builder
+            .http2()
+            .timer(TokioTimer::new())
+            .max_concurrent_streams(limits.http2_max_streams)
+            .keep_alive_interval(limits.http2_keepalive)
+            .keep_alive_timeout(limits.http2_keepalive);
+        tokio::pin!(shutdown);
+        let mut refused_logged: Option<Instant> = None;
+        loop {
+            let (stream, peer) = tokio::select! {
+                r = listener.accept() => match r {
+                    Ok(c) => c,
+                    Err(e) => {
+                        tracing::warn!(error = %e, "accept failed");
+                        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+                        continue;
+                    }
+                },
+                _ = &mut shutdown => break,
+            };
+            let Some(guard) = connections.admit() else {
+                // Refused at the cap: close at once. Log at most once a second.
+                if refused_logged.is_none_or(|t| t.elapsed() >= Duration::from_secs(1)) {
+                    tracing::warn!(%peer, max = limits.max_connections, "connection cap reached, refusing connections");
+                    refused_logged = Some(Instant::now());
+                }
+                drop(stream);
+                continue;
+            };
+            let _ = stream.set_nodelay(true);
+            let state = guard.state.clone();
+            let router = router.clone();
+            let svc = TowerToHyperService::new(tower::service_fn(
+                move |r: Request<hyper::body::Incoming>| {
+                    let active = state.begin();
+                    let mut r = r.map(axum::body::Body::new);
+                    r.extensions_mut().insert(conn::ConnHandle(state.clone()));
+                    let router = router.clone();
+                    async move {
+                        let resp = router.oneshot(r).await?;
+                        Ok::<_, std::convert::Infallible>(
+                            resp.map(|b| axum::body::Body::new(conn::Tracked::new(b, active))),
+                        )
+                    }
+                },
+            ));
+            let builder = builder.clone();
+            let tls = tls.clone();
+            let stop = stop_rx.clone();
+            tokio::spawn(async move {
+                let state = guard.state.clone();
+                let r = match tls {
+                    Some(acc) => {
+                        match tokio::time::timeout(limits.header_read_timeout, acc.accept(stream))
+                            .await
+                        {
+                            Ok(Ok(s)) => {
+                                let conn =
+                                    builder.serve_connection_with_upgrades(TokioIo::new(s), svc);
+                                conn::drive(conn.into_owned(), state, limits, stop).await
+                            }
+                            Ok(Err(e)) => {
+                                tracing::debug!(%peer, error = %e, "TLS handshake failed");
+                                return;
+                            }
+                            Err(_) => {
+                                tracing::debug!(%peer, "TLS handshake timed out");
+                                return;
+                            }
+                        }
+                    }
+                    None => {
+                        let conn =
+                            builder.serve_connection_with_upgrades(TokioIo::new(stream), svc);
+                        conn::drive(conn.into_owned(), state, limits, stop).await
+                    }
+                };
+                if let Err(e) = r {
+                    tracing::debug!(%peer, error = %e, "connection ended with error");
+                }
+                drop(guard);
+            });
+        }
+        drop(listener);
+        let deadline = Instant::now() + self.config.shutdown_grace;
+        tracing::info!("shutdown: stopping intake and flushing pending frames");
+        let service = self.service.clone();
+        tokio::task::spawn_blocking(move || service.close_by(Some(deadline)))
+            .await
+            .map_err(|e| Error::internal_from("shutdown task failed", e))?;
+        tracing::info!("shutdown: frames flushed, closing connections");
+        let _ = stop_tx.send(true);
+        let until = deadline.max(Instant::now() + Duration::from_millis(200));
+        if tokio::time::timeout_at(until.into(), connections.drained())
+            .await
+            .is_err()
+        {
+            tracing::warn!(
+                open = connections.len(),
+                "shutdown: grace period over, dropping open connections"
+            );
+            connections.kill_all();
+        }
+        Ok(())
+    }
+}
+
+/// Loads the models (off the async runtime) and serves until `shutdown` (see [`Server::serve`]).
+pub async fn run(
+    config: ServeConfig,
+    listener: TcpListener,
+    shutdown: impl Future<Output = ()> + Send,
+) -> Result<()> {
+    let server = tokio::task::spawn_blocking(move || Server::load(config))
+        .await
+        .map_err(|e| Error::internal_from("model loading task failed", e))??;
+    server.serve(listener, shutdown).await
+}
+
+/// Resolves on Ctrl-C or SIGTERM (the binary's shutdown trigger).
+pub async fn shutdown_signal() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        _ = ctrl_c => {},
+        _ = term => {},
+    }
+    tracing::info!("shutdown signal received");
+}
+
+/// Drives a scene's synchronizer timeouts: wakes at the earliest deadline or when a batch
+/// arrives, until shutdown.
+fn spawn_timer(scene: Arc<Scene>, stop: impl Future<Output = ()> + Send + 'static) {
+    tokio::spawn(async move {
+        tokio::pin!(stop);
+        loop {
+            let next = scene.tick(Instant::now());
+            let sleep = async {
+                match next {
+                    Some(t) => tokio::time::sleep_until(tokio::time::Instant::from_std(t)).await,
+                    None => std::future::pending().await,
+                }
+            };
+            tokio::select! {
+                _ = scene.wake.notified() => {},
+                _ = sleep => {},
+                _ = &mut stop => break,
+            }
+        }
+    });
+}
+
+/// A tonic service mounted on an axum path prefix; each request body is bounded per message
+/// by `body_timeout` ([`body::GrpcMessageDeadline`]).
+fn grpc_route<S>(router: Router, svc: S, body_timeout: Duration) -> Router
+where
+    S: tower::Service<::http::Request<tonic::body::Body>, Error = std::convert::Infallible>
+        + tonic::server::NamedService
+        + Clone
+        + Send
+        + Sync
+        + 'static,
+    S::Response: IntoResponse,
+    S::Future: Send + 'static,
+{
+    router.route_service(
+        &format!("/{}/{{*rest}}", S::NAME),
+        svc.map_request(move |r: Request| {
+            r.map(|b| tonic::body::Body::new(body::GrpcMessageDeadline::new(b, body_timeout)))
+        }),
+    )
+}
+
+async fn fallback(req: Request) -> Response {
+    if auth::is_grpc(&req) {
+        tonic::Status::unimplemented(format!("no such method {}", req.uri().path()))
+            .into_http::<axum::body::Body>()
+    } else {
+        (::http::StatusCode::NOT_FOUND, "not found").into_response()
+    }
+}
+
+async fn build_router(svc: &Arc<Service>, config: &ServeConfig) -> Result<Router> {
+    use crossview_api::pb;
+    use pb::association_server::AssociationServer;
+    let limit = config.limits.max_request_bytes;
+    let (reporter, health) = tonic_health::server::health_reporter();
+    // The reporter starts with "" = SERVING; mark the service itself too.
+    reporter
+        .set_serving::<AssociationServer<grpc::GrpcService>>()
+        .await;
+    let reflection = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
+        .build_v1()
+        .map_err(|e| Error::internal_from("cannot build the gRPC reflection service", e))?;
+    let grpc = grpc::GrpcService::new(svc.clone(), config.connections.subscriber_stall_timeout);
+    let generated = AssociationServer::new(grpc.clone())
+        .max_decoding_message_size(limit)
+        .max_encoding_message_size(usize::MAX);
+    let association = push::Routes::new(generated, grpc, limit);
+    let mut router = Router::new();
+    let body_timeout = config.connections.body_timeout;
+    router = grpc_route(router, association, body_timeout);
+    router = grpc_route(router, health, body_timeout);
+    router = grpc_route(router, reflection, body_timeout);
+    let body_limits = body::BodyLimits {
+        max_bytes: limit,
+        timeout: body_timeout,
+    };
+    let keys = auth::ApiKeys::new(&config.api_keys, svc.metrics().clone());
+    Ok(router
+        .merge(
+            http::router(svc.clone(), limit).layer(middleware::from_fn_with_state(
+                body_limits,
+                body::buffer_body,
+            )),
+        )
+        .fallback(fallback)
+        .layer(middleware::from_fn_with_state(keys, auth::require_token))
+        .layer(middleware::from_fn_with_state(
+            svc.metrics().clone(),
+            track_requests,
+        )))
+}
+
+/// Counts every request by transport, route and outcome, and times it to the response head.
+async fn track_requests(State(m): State<metrics::Metrics>, req: Request, next: Next) -> Response {
+    let grpc = auth::is_grpc(&req);
+    let method = request_label(&req, grpc);
+    let t = Instant::now();
+    let resp = next.run(req).await;
+    let status = if grpc {
+        // Server-made, but parsed into the closed set of gRPC codes all the same.
+        let code = resp
+            .headers()
+            .get("grpc-status")
+            .and_then(|v| v.to_str().ok())
+            .map_or(Some(0), |v| v.parse::<u8>().ok().filter(|c| *c <= 16));
+        code.map_or_else(|| "other".to_string(), |c| c.to_string())
+    } else {
+        resp.status().as_u16().to_string()
+    };
+    if let Some(http::UncountedError(kind)) = resp.extensions().get() {
+        m.error_kind(kind);
+    }
+    let transport = if grpc { "grpc" } else { "http" };
+    m.request(transport, &method, &status, t.elapsed());
+    resp
+}
+
+/// The gRPC methods this server serves: the only gRPC label values besides `other`.
+const GRPC_METHODS: &[&str] = &[
+    "/crossview.v1.Association/Associate",
+    "/crossview.v1.Association/Push",
+    "/crossview.v1.Association/Subscribe",
+    "/crossview.v1.Association/Stream",
+    "/crossview.v1.Association/ListScenes",
+    "/crossview.v1.Association/GetScene",
+    "/grpc.health.v1.Health/Check",
+    "/grpc.health.v1.Health/Watch",
+    "/grpc.reflection.v1.ServerReflection/ServerReflectionInfo",
+];
+
+/// The `method` label of a request, from a closed set: a known gRPC method path or `other`;
+/// for HTTP a standard verb (else `OTHER`) and the matched route template, or `unmatched`.
+fn request_label(req: &Request, grpc: bool) -> String {
+    if grpc {
+        let path = req.uri().path();
+        return GRPC_METHODS
+            .iter()
+            .find(|m| **m == path)
+            .map_or("other", |m| m)
+            .to_string();
+    }
+    match req.extensions().get::<MatchedPath>() {
+        Some(p) => {
+            let verb = match req.method().as_str() {
+                v @ ("GET" | "POST" | "HEAD" | "PUT" | "DELETE" | "PATCH" | "OPTIONS") => v,
+                _ => "OTHER",
+            };
+            format!("{verb} {}", p.as_str())
+        }
+        None => "unmatched".to_string(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn echoed_text_is_truncated_at_a_char_boundary() {
+        assert_eq!(truncate_echo("short"), "short");
+        let long = "é".repeat(1000);
+        let t = truncate_echo(&long);
+        assert!(t.len() < MAX_ERROR_MESSAGE + 40, "{}", t.len());
+        assert!(t.ends_with("(2000 bytes in all)"), "{t}");
+    }
+}

@@ -1,0 +1,180 @@
+//! Prometheus metrics of one server instance. Each [`Metrics`] owns its own recorder (no global
+//! state), so several servers in one process (tests) keep separate counts.
+use std::sync::Arc;
+use std::time::Duration;
+
+use crossview_core::Error;
+use metrics::{Key, Label, Metadata, Recorder};
+use metrics_exporter_prometheus::{PrometheusBuilder, PrometheusHandle, PrometheusRecorder};
+
+const BUCKETS: &[f64] = &[
+    0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
+];
+
+static META: Metadata<'static> =
+    Metadata::new(module_path!(), metrics::Level::INFO, Some(module_path!()));
+
+/// Counters, gauges and histograms of the service, rendered at `/metrics`.
+#[derive(Clone)]
+pub struct Metrics {
+    recorder: Arc<PrometheusRecorder>,
+    handle: PrometheusHandle,
+}
+
+impl std::fmt::Debug for Metrics {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Metrics")
+    }
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+fn key(name: &'static str, labels: &[(&'static str, &str)]) -> Key {
+    let labels: Vec<Label> = labels
+        .iter()
+        .map(|(k, v)| Label::new(*k, v.to_string()))
+        .collect();
+    Key::from_parts(name, labels)
+}
+
+impl Metrics {
+    /// A fresh, empty registry.
+    pub fn new() -> Self {
+        let recorder = PrometheusBuilder::new()
+            .set_buckets(BUCKETS)
+            .expect("static buckets are non-empty")
+            .build_recorder();
+        let handle = recorder.handle();
+        Metrics {
+            recorder: Arc::new(recorder),
+            handle,
+        }
+    }
+
+    fn inc(&self, name: &'static str, labels: &[(&'static str, &str)]) {
+        self.recorder
+            .register_counter(&key(name, labels), &META)
+            .increment(1);
+    }
+
+    fn observe(&self, name: &'static str, labels: &[(&'static str, &str)], d: Duration) {
+        self.recorder
+            .register_histogram(&key(name, labels), &META)
+            .record(d.as_secs_f64());
+    }
+
+    /// One API request (`transport` = grpc | http, `method` its route) and its duration to the
+    /// response head. Every label value must come from a closed set (the caller maps client
+    /// input onto known names or `other`), or the registry grows without bound.
+    pub fn request(&self, transport: &str, method: &str, status: &str, took: Duration) {
+        let l = [
+            ("transport", transport),
+            ("method", method),
+            ("status", status),
+        ];
+        self.inc("crossview_requests_total", &l);
+        self.observe(
+            "crossview_request_duration_seconds",
+            &[("transport", transport), ("method", method)],
+            took,
+        );
+    }
+
+    /// Counts one error by its [`Error::kind`]: the one counter of `crossview_errors_total`,
+    /// for both transports and the inference worker.
+    pub fn error(&self, e: &Error) {
+        self.error_kind(e.kind());
+    }
+
+    /// Counts an error already turned into a response (its kind from [`Error::kind`]).
+    pub(crate) fn error_kind(&self, kind: &'static str) {
+        self.inc("crossview_errors_total", &[("kind", kind)]);
+    }
+
+    /// One accepted batch.
+    pub fn batch(&self, scene: &str) {
+        self.inc("crossview_batches_total", &[("scene", scene)]);
+    }
+
+    /// One late batch (its frame was already emitted).
+    pub fn late(&self, scene: &str) {
+        self.inc("crossview_late_batches_total", &[("scene", scene)]);
+    }
+
+    /// One duplicate batch.
+    pub fn duplicate(&self, scene: &str) {
+        self.inc("crossview_duplicate_batches_total", &[("scene", scene)]);
+    }
+
+    /// One batch refused as out of the frame-id window.
+    pub fn out_of_range(&self, scene: &str) {
+        self.inc("crossview_out_of_range_batches_total", &[("scene", scene)]);
+    }
+
+    /// `n` boxes clipped to their image (they overlapped its edge).
+    pub fn clipped(&self, scene: &str, n: usize) {
+        self.recorder
+            .register_counter(
+                &key("crossview_clipped_boxes_total", &[("scene", scene)]),
+                &META,
+            )
+            .increment(n as u64);
+    }
+
+    /// Open connections of the shared port.
+    pub fn connections(&self, n: usize) {
+        self.recorder
+            .register_gauge(&key("crossview_connections", &[]), &META)
+            .set(n as f64);
+    }
+
+    /// One connection refused at the connection cap (every open one had a request in flight).
+    pub(crate) fn connection_refused(&self) {
+        self.inc("crossview_connections_refused_total", &[]);
+    }
+
+    /// One idle connection closed to make room for a new one at the connection cap.
+    pub(crate) fn connection_evicted(&self) {
+        self.inc("crossview_connections_evicted_total", &[]);
+    }
+
+    /// One frame emitted by the synchronizer.
+    pub fn frame(&self, scene: &str, complete: bool) {
+        let c = if complete { "complete" } else { "partial" };
+        self.inc("crossview_frames_total", &[("scene", scene), ("state", c)]);
+    }
+
+    /// Frames currently waiting in the synchronizer.
+    pub fn pending(&self, scene: &str, n: usize) {
+        self.recorder
+            .register_gauge(&key("crossview_pending_frames", &[("scene", scene)]), &META)
+            .set(n as f64);
+    }
+
+    /// Live result subscribers (gRPC Subscribe/Stream and SSE) of a scene.
+    pub fn subscribers(&self, scene: &str, n: usize) {
+        self.recorder
+            .register_gauge(&key("crossview_subscribers", &[("scene", scene)]), &META)
+            .set(n as f64);
+    }
+
+    /// Frame latency: first batch to result published.
+    pub(crate) fn frame_latency(&self, scene: &str, d: Duration) {
+        self.observe("crossview_frame_latency_seconds", &[("scene", scene)], d);
+    }
+
+    /// Time spent in the encoder and matcher for one frame.
+    pub fn inference(&self, scene: &str, d: Duration) {
+        self.observe("crossview_inference_seconds", &[("scene", scene)], d);
+    }
+
+    /// The Prometheus text exposition.
+    pub fn render(&self) -> String {
+        self.handle.run_upkeep();
+        self.handle.render()
+    }
+}

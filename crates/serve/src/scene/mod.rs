@@ -1,0 +1,399 @@
+//! One served scene: its description, synchronizer, inference worker and results broadcast.
+//! One job per module: [`validate`] what a batch may contain, [`admission`] the bounded
+//! inference queue, [`worker`] the encoder thread; this module drives the synchronizer and
+//! owns the broadcast.
+//!
+//! Data flow: `push` validates a batch and feeds the scene's [`Synchronizer`] under one lock;
+//! frames that leave go, still under that lock (so in frame-id order), into the worker's queue.
+//! The worker — a dedicated thread owning the encoder — associates each frame with one encoder
+//! call and publishes the result on a broadcast channel, in queue order. Admission is bounded:
+//! when `queue_capacity` frames are queued, new batches and unary requests are shed with
+//! [`Error::ResourceExhausted`] before anything is accepted; a batch (or unary request) that
+//! would make its frame cost more than `max_frame_cost` ([`crate::cost`]) is refused; and a
+//! frame whose association has not started `frame_deadline` after its first batch (or after
+//! the shutdown deadline) is published with an error instead of identities, so every accepted
+//! batch still appears in exactly one result.
+//!
+//! Boxes overlapping their image's edge are clipped to the image
+//! ([`Detection::clip_to_image`]) and counted (`crossview_clipped_boxes_total`); boxes
+//! entirely outside it are refused. The scene's appearance length is fixed by the first
+//! *accepted* batch carrying appearance vectors.
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use tokio::sync::{Notify, broadcast, oneshot};
+
+use crossview_api::types::{FrameResult, SceneDescription};
+use crossview_core::association::AssociationConfig;
+use crossview_core::{Detection, Encoder, Error, Frame, Result, SceneSpec};
+
+use crate::config::Limits;
+use crate::metrics::Metrics;
+use crate::sync::{Rejection, Synchronizer};
+
+mod admission;
+mod validate;
+mod worker;
+
+use worker::{Job, Worker};
+
+/// Static facts about a scene (from its model file).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SceneInfo {
+    /// Name and cameras.
+    pub spec: SceneSpec,
+    /// Association settings (SPEC §3 threshold and alpha, identity confidence), from the
+    /// model's metadata ([`crossview_model::ModelMetadata::association_config`]).
+    pub association: AssociationConfig,
+    /// Model version string.
+    pub version: String,
+}
+
+struct Intake {
+    sync: Synchronizer,
+    jobs: Option<std::sync::mpsc::Sender<Job>>,
+}
+
+/// A live scene (see the module docs).
+pub struct Scene {
+    info: SceneInfo,
+    limits: Limits,
+    sync_timeout: Duration,
+    metrics: Metrics,
+    intake: Mutex<Intake>,
+    /// Frames queued for or inside the worker.
+    queued: Arc<AtomicUsize>,
+    /// Appearance length fixed by the first accepted batch with vectors (0 = unknown).
+    appearance_len: AtomicUsize,
+    /// After this instant (set at shutdown) queued frames are published without association.
+    close_by: Arc<Mutex<Option<Instant>>>,
+    closed: AtomicBool,
+    subscribers: Arc<AtomicUsize>,
+    results: Mutex<Option<broadcast::Sender<Arc<FrameResult>>>>,
+    /// Results published so far (for spotting subscribers that stopped reading).
+    published: Arc<AtomicU64>,
+    /// Wakes the timer task when a new frame starts waiting.
+    pub(crate) wake: Notify,
+    worker: Mutex<Option<std::thread::JoinHandle<()>>>,
+}
+
+impl std::fmt::Debug for Scene {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Scene").field("info", &self.info).finish()
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+impl Scene {
+    /// Starts a scene: its worker thread takes ownership of `encoder`.
+    pub fn start(
+        info: SceneInfo,
+        encoder: Box<dyn Encoder>,
+        sync_timeout: Duration,
+        max_pending: usize,
+        limits: Limits,
+        metrics: Metrics,
+    ) -> Result<Arc<Scene>> {
+        let n = info.spec.cameras.len();
+        if n == 0 || n > limits.max_cameras {
+            return Err(Error::invalid(
+                "cameras",
+                format!(
+                    "scene '{}' has {n} cameras; 1..={} are supported",
+                    info.spec.name, limits.max_cameras
+                ),
+            ));
+        }
+        let (tx, rx) = std::sync::mpsc::channel::<Job>();
+        let (results, _) = broadcast::channel(limits.subscriber_buffer.max(1));
+        let queued = Arc::new(AtomicUsize::new(0));
+        let close_by = Arc::new(Mutex::new(None));
+        let published = Arc::new(AtomicU64::new(0));
+        let worker = Worker {
+            info: info.clone(),
+            encoder,
+            results: results.clone(),
+            queued: queued.clone(),
+            metrics: metrics.clone(),
+            frame_deadline: limits.frame_deadline,
+            close_by: close_by.clone(),
+            published: published.clone(),
+        };
+        let handle = std::thread::Builder::new()
+            .name(format!("encoder-{}", info.spec.name))
+            .spawn(move || worker.run(rx))
+            .map_err(|e| Error::internal_from("cannot start the encoder thread", e))?;
+        Ok(Arc::new(Scene {
+            intake: Mutex::new(Intake {
+                sync: Synchronizer::new(n, sync_timeout, max_pending)
+                    .with_window(limits.frame_window),
+                jobs: Some(tx),
+            }),
+            info,
+            limits,
+            sync_timeout,
+            metrics,
+            queued,
+            appearance_len: AtomicUsize::new(0),
+            close_by,
+            closed: AtomicBool::new(false),
+            subscribers: Arc::new(AtomicUsize::new(0)),
+            results: Mutex::new(Some(results)),
+            published,
+            wake: Notify::new(),
+            worker: Mutex::new(Some(handle)),
+        }))
+    }
+
+    /// Static facts.
+    pub fn info(&self) -> &SceneInfo {
+        &self.info
+    }
+
+    /// The size and cost limits the scene enforces.
+    pub fn limits(&self) -> &Limits {
+        &self.limits
+    }
+
+    /// Scene name.
+    pub fn name(&self) -> &str {
+        &self.info.spec.name
+    }
+
+    /// The public description (`GetScene`).
+    pub fn describe(&self) -> SceneDescription {
+        let app = self.appearance_len.load(Ordering::Relaxed);
+        SceneDescription {
+            name: self.info.spec.name.clone(),
+            cameras: self.info.spec.cameras.clone(),
+            threshold: self.info.association.threshold,
+            alpha: self.info.association.alpha,
+            model_version: self.info.version.clone(),
+            appearance_length: (app > 0).then_some(app),
+            sync_timeout_ms: self.sync_timeout.as_millis() as u64,
+        }
+    }
+
+    /// Accepts one camera batch into the synchronizer (see the module docs). Late, duplicate
+    /// and out-of-range batches are rejected and counted.
+    pub fn push(&self, camera: &str, frame_id: u64, mut detections: Vec<Detection>) -> Result<()> {
+        let cam = self.info.spec.camera_index(camera)?;
+        let app_len = self.validate("detections", cam, &mut detections)?;
+        let n_boxes = detections.len();
+        let mut intake = lock(&self.intake);
+        // Shed before accepting anything. One batch can release several frames at once, so the
+        // queue may overshoot the capacity by at most `max_pending_frames`: still bounded.
+        self.admit(1)?;
+        // Under the intake lock: no other batch can fix the length or grow the frame meanwhile.
+        self.check_appearance("detections", app_len)?;
+        if let Some(f) = intake.sync.pending_frame(frame_id)
+            && f.views[cam].is_none()
+        {
+            let mut counts: Vec<usize> = f
+                .views
+                .iter()
+                .map(|v| v.as_ref().map_or(0, Vec::len))
+                .collect();
+            counts[cam] = n_boxes;
+            self.check_cost("detections", frame_id, &counts)?;
+        }
+        let emitted = match intake.sync.push(cam, frame_id, detections, Instant::now()) {
+            Ok(e) => e,
+            Err(r) => return Err(self.rejected(&intake, r, camera, frame_id)),
+        };
+        if let Some(n) = app_len {
+            // Only an accepted batch fixes the scene's appearance length.
+            let _ =
+                self.appearance_len
+                    .compare_exchange(0, n, Ordering::Relaxed, Ordering::Relaxed);
+        }
+        self.metrics.batch(self.name());
+        self.enqueue(&mut intake, emitted);
+        drop(intake);
+        // The earliest deadline may have changed.
+        self.wake.notify_one();
+        Ok(())
+    }
+
+    /// The error for a batch the synchronizer refused, counted by rejection kind.
+    fn rejected(&self, intake: &Intake, r: Rejection, camera: &str, frame_id: u64) -> Error {
+        let (scene, camera) = (self.name().to_string(), camera.to_string());
+        match r {
+            Rejection::Late => {
+                self.metrics.late(self.name());
+                Error::LateBatch {
+                    scene,
+                    camera,
+                    frame_id,
+                }
+            }
+            Rejection::Duplicate => {
+                self.metrics.duplicate(self.name());
+                Error::DuplicateBatch {
+                    scene,
+                    camera,
+                    frame_id,
+                }
+            }
+            Rejection::OutOfRange => {
+                self.metrics.out_of_range(self.name());
+                let w = intake.sync.window();
+                let from = match intake.sync.last_emitted() {
+                    Some(last) => format!("the last emitted frame {last}"),
+                    None => "the oldest pending frame".to_string(),
+                };
+                Error::FrameOutOfRange {
+                    scene,
+                    camera,
+                    frame_id,
+                    reason: format!(
+                        "more than {w} (--frame-window) from {from}; the scene follows new ids \
+                         once a majority of its cameras send them"
+                    ),
+                }
+            }
+        }
+    }
+
+    /// Emits whatever timed out by `now`; returns the next deadline.
+    pub fn tick(&self, now: Instant) -> Option<Instant> {
+        let mut intake = lock(&self.intake);
+        let emitted = intake.sync.poll(now);
+        if !emitted.is_empty() {
+            self.enqueue(&mut intake, emitted);
+        }
+        intake.sync.next_deadline()
+    }
+
+    /// Associates one already synchronized frame (unary call); bypasses the synchronizer.
+    pub async fn associate(
+        &self,
+        frame_id: u64,
+        views: Vec<(String, Vec<Detection>)>,
+    ) -> Result<FrameResult> {
+        let started = Instant::now();
+        let n = self.info.spec.cameras.len();
+        let mut frame = Frame::new(frame_id, n);
+        let mut app_len: Option<usize> = None;
+        for (k, (camera, mut dets)) in views.into_iter().enumerate() {
+            let c = self.info.spec.camera_index(&camera)?;
+            if frame.views[c].is_some() {
+                return Err(Error::invalid(
+                    format!("views[{k}].camera"),
+                    format!("camera '{camera}' appears twice"),
+                ));
+            }
+            let field = format!("views[{k}].detections");
+            let len = self.validate(&field, c, &mut dets)?;
+            // One length over the whole request; a unary call never fixes the scene's.
+            if let (Some(a), Some(b)) = (app_len, len)
+                && a != b
+            {
+                return Err(Error::invalid(
+                    format!("{field}[0].appearance"),
+                    format!("expected {a} values, got {b}"),
+                ));
+            }
+            app_len = app_len.or(len);
+            self.check_appearance(&field, len)?;
+            frame.views[c] = Some(dets);
+        }
+        let counts: Vec<usize> = frame
+            .views
+            .iter()
+            .map(|v| v.as_ref().map_or(0, Vec::len))
+            .collect();
+        self.check_cost("views", frame_id, &counts)?;
+        let (tx, rx) = oneshot::channel();
+        {
+            let intake = lock(&self.intake);
+            self.admit(1)?;
+            let jobs = intake
+                .jobs
+                .as_ref()
+                .ok_or_else(|| Error::Unavailable("server is shutting down".into()))?;
+            self.queued.fetch_add(1, Ordering::AcqRel);
+            if jobs
+                .send(Job::Unary {
+                    frame,
+                    started,
+                    reply: tx,
+                })
+                .is_err()
+            {
+                self.queued.fetch_sub(1, Ordering::AcqRel);
+                return Err(Error::Unavailable("encoder worker is gone".into()));
+            }
+        }
+        rx.await
+            .map_err(|_| Error::Unavailable("encoder worker stopped".into()))?
+    }
+
+    /// Results published so far.
+    pub fn published(&self) -> u64 {
+        self.published.load(Ordering::Acquire)
+    }
+
+    /// A receiver of this scene's frame results from now on, or `Unavailable` after shutdown;
+    /// the guard keeps the subscriber counted (`crossview_subscribers`) until dropped.
+    pub fn subscribe(&self) -> Result<(broadcast::Receiver<Arc<FrameResult>>, SubscriberGuard)> {
+        let rx = lock(&self.results)
+            .as_ref()
+            .map(broadcast::Sender::subscribe)
+            .ok_or_else(|| Error::Unavailable("server is shutting down".into()))?;
+        let n = self.subscribers.fetch_add(1, Ordering::AcqRel) + 1;
+        self.metrics.subscribers(self.name(), n);
+        Ok((
+            rx,
+            SubscriberGuard {
+                count: self.subscribers.clone(),
+                metrics: self.metrics.clone(),
+                scene: self.name().to_string(),
+            },
+        ))
+    }
+
+    /// Graceful shutdown of this scene: refuses new work, flushes pending frames as partial
+    /// results, lets the worker finish its queue and publish them, then closes the broadcast
+    /// so subscriber streams end. Blocking (joins the worker thread).
+    ///
+    /// With `deadline`, frames still queued after it are published with an error instead of
+    /// being associated, so shutdown ends within about one frame's cost of it.
+    pub fn close(&self, deadline: Option<Instant>) {
+        *lock(&self.close_by) = deadline;
+        self.closed.store(true, Ordering::Release);
+        {
+            let mut intake = lock(&self.intake);
+            let emitted = intake.sync.flush();
+            let n = emitted.len();
+            self.enqueue(&mut intake, emitted);
+            intake.jobs = None;
+            tracing::info!(scene = self.name(), flushed = n, "scene intake closed");
+        }
+        if let Some(h) = lock(&self.worker).take()
+            && h.join().is_err()
+        {
+            tracing::error!(scene = self.name(), "encoder worker panicked");
+        }
+        lock(&self.results).take();
+    }
+}
+
+/// Keeps one subscriber counted in the `crossview_subscribers` gauge while alive.
+#[derive(Debug)]
+pub struct SubscriberGuard {
+    count: Arc<AtomicUsize>,
+    metrics: Metrics,
+    scene: String,
+}
+
+impl Drop for SubscriberGuard {
+    fn drop(&mut self) {
+        let n = self.count.fetch_sub(1, Ordering::AcqRel).saturating_sub(1);
+        self.metrics.subscribers(&self.scene, n);
+    }
+}

@@ -1,0 +1,171 @@
+//! A scene's inference worker: a dedicated thread that owns the encoder, associates each
+//! queued frame with one encoder call, and publishes the results in queue order. A frame that
+//! waited past the frame deadline (or the shutdown grace) is published with an error instead,
+//! so every accepted batch still appears in exactly one result.
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use tokio::sync::{broadcast, oneshot};
+
+use crossview_api::convert::identity_out;
+use crossview_api::types::{FrameResult, IdentityOut};
+use crossview_core::association::{embed_frame, frame_identities};
+use crossview_core::{Encoder, Error, Frame, Result};
+
+use super::{SceneInfo, lock};
+use crate::metrics::Metrics;
+use crate::sync::Emitted;
+
+/// Work for the worker.
+pub(super) enum Job {
+    /// A frame from the synchronizer: publish its result.
+    Stream(Emitted),
+    /// A unary request: answer it (its error, with its kind, goes back to the caller).
+    Unary {
+        frame: Frame,
+        started: Instant,
+        reply: oneshot::Sender<Result<FrameResult>>,
+    },
+}
+
+/// The worker's state; [`Worker::run`] consumes it on its thread.
+pub(super) struct Worker {
+    pub(super) info: SceneInfo,
+    pub(super) encoder: Box<dyn Encoder>,
+    pub(super) results: broadcast::Sender<Arc<FrameResult>>,
+    pub(super) queued: Arc<AtomicUsize>,
+    pub(super) metrics: Metrics,
+    pub(super) frame_deadline: Duration,
+    pub(super) close_by: Arc<Mutex<Option<Instant>>>,
+    pub(super) published: Arc<AtomicU64>,
+}
+
+impl Worker {
+    /// Serves jobs until the queue's sender is dropped (scene closed).
+    pub(super) fn run(mut self, rx: std::sync::mpsc::Receiver<Job>) {
+        while let Ok(job) = rx.recv() {
+            match job {
+                Job::Stream(e) => {
+                    let r = self.stream_result(&e.frame, e.first_seen);
+                    self.metrics
+                        .frame_latency(&self.info.spec.name, e.first_seen.elapsed());
+                    self.queued.fetch_sub(1, Ordering::AcqRel);
+                    // Count first, so a subscriber never sees more results than published.
+                    self.published.fetch_add(1, Ordering::AcqRel);
+                    // No subscriber is not an error.
+                    let _ = self.results.send(Arc::new(r));
+                }
+                Job::Unary {
+                    frame,
+                    started,
+                    reply,
+                } => {
+                    // The caller counts the error (the service does, once).
+                    let r = self
+                        .associate_in_time(&frame, started)
+                        .map(|ids| self.result(&frame, started, ids));
+                    self.queued.fetch_sub(1, Ordering::AcqRel);
+                    let _ = reply.send(r);
+                }
+            }
+        }
+        tracing::debug!(scene = %self.info.spec.name, "encoder worker done");
+    }
+
+    /// The published result of a synchronized frame: its identities, or the error (message
+    /// and kind, counted here: no caller sees it) without identities.
+    fn stream_result(&mut self, frame: &Frame, first_seen: Instant) -> FrameResult {
+        match self.associate_in_time(frame, first_seen) {
+            Ok(ids) => self.result(frame, first_seen, ids),
+            Err(e) => {
+                self.metrics.error(&e);
+                let mut r = self.result(frame, first_seen, Vec::new());
+                r.error = Some(e.report());
+                r.error_kind = Some(e.kind().to_string());
+                r
+            }
+        }
+    }
+
+    /// The frame's identities, unless it waited too long to be associated at all.
+    fn associate_in_time(
+        &mut self,
+        frame: &Frame,
+        first_seen: Instant,
+    ) -> Result<Vec<IdentityOut>> {
+        self.check_deadline(first_seen)?;
+        self.associate(frame)
+    }
+
+    /// Refuses a frame first seen at `first_seen` once past the frame deadline or the
+    /// shutdown grace.
+    fn check_deadline(&self, first_seen: Instant) -> Result<()> {
+        let now = Instant::now();
+        let waited = now.saturating_duration_since(first_seen);
+        if lock(&self.close_by).is_some_and(|t| now >= t) {
+            Err(Error::Unavailable(
+                "frame not associated: the server is shutting down and its --shutdown-grace \
+                 is over"
+                    .into(),
+            ))
+        } else if waited > self.frame_deadline {
+            Err(Error::DeadlineExceeded(format!(
+                "frame not associated: it waited {:.3}s for inference, over the frame deadline \
+                 of {:?} (--frame-deadline)",
+                waited.as_secs_f64(),
+                self.frame_deadline
+            )))
+        } else {
+            Ok(())
+        }
+    }
+
+    /// Embeds the frame in one encoder call and builds its identities (SPEC §3); a panic in
+    /// the method becomes an [`Error::Internal`] instead of taking the scene down.
+    fn associate(&mut self, frame: &Frame) -> Result<Vec<IdentityOut>> {
+        let spec = &self.info.spec;
+        let t = Instant::now();
+        let encoder = self.encoder.as_mut();
+        let config = &self.info.association;
+        let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            let embeddings = embed_frame(encoder, spec, frame)?;
+            Ok(frame_identities(frame, &embeddings, config))
+        }))
+        .unwrap_or_else(|_| Err(Error::internal("association panicked")));
+        self.metrics.inference(&spec.name, t.elapsed());
+        match outcome {
+            Ok(ids) => Ok(ids.into_iter().map(|id| identity_out(spec, id)).collect()),
+            Err(e) => {
+                tracing::error!(
+                    scene = %spec.name,
+                    frame_id = frame.frame_id,
+                    error = %e.report(),
+                    "association failed"
+                );
+                Err(e)
+            }
+        }
+    }
+
+    /// The published form of `frame` with `identities`.
+    fn result(&self, frame: &Frame, started: Instant, identities: Vec<IdentityOut>) -> FrameResult {
+        let spec = &self.info.spec;
+        FrameResult {
+            scene: spec.name.clone(),
+            frame_id: frame.frame_id,
+            complete: frame.is_complete(),
+            missing_cameras: frame
+                .views
+                .iter()
+                .zip(&spec.cameras)
+                .filter(|(v, _)| v.is_none())
+                .map(|(_, c)| c.name.clone())
+                .collect(),
+            identities,
+            latency_ms: started.elapsed().as_secs_f64() * 1e3,
+            error: None,
+            error_kind: None,
+        }
+    }
+}

@@ -1,0 +1,250 @@
+//! The one domain API both transports call: scene lookup, push, subscribe, unary association,
+//! readiness and shutdown. gRPC and HTTP only translate their wire formats to these calls.
+use std::collections::BTreeMap;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use futures::{Stream, StreamExt};
+use tokio::sync::watch;
+use tokio_stream::wrappers::BroadcastStream;
+use tokio_stream::wrappers::errors::BroadcastStreamRecvError;
+
+use super::conn::ConnHandle;
+use super::metrics::Metrics;
+use super::scene::Scene;
+use crossview_api::types::{AssociateRequest, BatchAck, FrameResult, SceneDescription};
+use crossview_core::Batch;
+use crossview_core::{Error, Result};
+
+/// A stream of one scene's frame results, in frame-id order. It ends after shutdown has
+/// published the last flushed frame, or with `ResourceExhausted` when the subscriber fell
+/// more than the subscriber buffer behind.
+pub(crate) type ResultStream = Pin<Box<dyn Stream<Item = Result<Arc<FrameResult>>> + Send>>;
+
+/// The service shared by all connections of a server.
+#[derive(Debug)]
+pub struct Service {
+    scenes: BTreeMap<String, Arc<Scene>>,
+    metrics: Metrics,
+    ready: AtomicBool,
+    shutdown: watch::Sender<bool>,
+    stall_timeout: Option<Duration>,
+}
+
+impl Service {
+    /// A service over started scenes.
+    pub fn new(scenes: Vec<Arc<Scene>>, metrics: Metrics) -> Self {
+        let (shutdown, _) = watch::channel(false);
+        Service {
+            scenes: scenes
+                .into_iter()
+                .map(|s| (s.name().to_string(), s))
+                .collect(),
+            metrics,
+            ready: AtomicBool::new(true),
+            shutdown,
+            stall_timeout: None,
+        }
+    }
+
+    /// Disconnects result subscribers that stop reading for `stall` (see [`Self::subscribe`]).
+    pub(crate) fn with_stall_timeout(mut self, stall: Duration) -> Self {
+        self.stall_timeout = Some(stall);
+        self
+    }
+
+    /// The subscriber stall timeout, if any.
+    pub(crate) fn stall_timeout(&self) -> Option<Duration> {
+        self.stall_timeout
+    }
+
+    /// The metrics registry.
+    pub fn metrics(&self) -> &Metrics {
+        &self.metrics
+    }
+
+    /// Counts an error by kind on its way out.
+    fn track<T>(&self, r: Result<T>) -> Result<T> {
+        if let Err(e) = &r {
+            self.metrics.error(e);
+        }
+        r
+    }
+
+    /// The scene called `name`, or `UnknownScene`.
+    pub fn scene(&self, name: &str) -> Result<&Arc<Scene>> {
+        self.track(
+            self.scenes
+                .get(name)
+                .ok_or_else(|| Error::UnknownScene(name.to_string())),
+        )
+    }
+
+    /// Every scene, by name.
+    pub fn scenes(&self) -> Vec<SceneDescription> {
+        self.scenes.values().map(|s| s.describe()).collect()
+    }
+
+    /// One scene's description.
+    pub fn describe(&self, name: &str) -> Result<SceneDescription> {
+        Ok(self.scene(name)?.describe())
+    }
+
+    /// Pushes one camera batch of scene `scene` into its synchronizer.
+    pub fn push(&self, scene: &str, batch: Batch) -> Result<BatchAck> {
+        let s = self.scene(scene)?;
+        let Batch {
+            camera,
+            frame_id,
+            detections,
+        } = batch;
+        self.track(s.push(&camera, frame_id, detections))?;
+        Ok(BatchAck {
+            scene: scene.to_string(),
+            camera,
+            frame_id,
+            accepted: true,
+        })
+    }
+
+    /// Associates one already synchronized frame.
+    pub async fn associate(&self, scene: &str, req: AssociateRequest) -> Result<FrameResult> {
+        let s = self.scene(scene)?;
+        let views = req
+            .views
+            .into_iter()
+            .map(|v| (v.camera, v.detections))
+            .collect();
+        self.track(s.associate(req.frame_id, views).await)
+    }
+
+    /// The results of `scene` from now on. With `conn` (the subscriber's connection) and a
+    /// stall timeout, a subscriber that has not taken a waiting result for that long is
+    /// disconnected (see [`watch_stall`]).
+    pub fn subscribe(
+        &self,
+        scene: &str,
+        conn: Option<ConnHandle>,
+        stall_timeout: Option<Duration>,
+    ) -> Result<ResultStream> {
+        let s = self.scene(scene)?;
+        let (rx, guard) = self.track(s.subscribe())?;
+        let metrics = self.metrics.clone();
+        let mut failed = false;
+        let taken = Arc::new(AtomicU64::new(0));
+        if let (Some(conn), Some(stall)) = (conn, stall_timeout) {
+            tokio::spawn(watch_stall(
+                s.clone(),
+                s.published(),
+                Arc::downgrade(&taken),
+                conn,
+                stall,
+                self.metrics.clone(),
+            ));
+        }
+        let stream = BroadcastStream::new(rx)
+            .map(move |item| {
+                // The stream owns the guard: the subscriber is counted while it lives.
+                let _ = &guard;
+                taken.fetch_add(1, Ordering::AcqRel);
+                item
+            })
+            .map(move |item| match item {
+                Ok(r) => Ok(r),
+                Err(BroadcastStreamRecvError::Lagged(n)) => {
+                    let e = Error::ResourceExhausted(format!(
+                        "subscriber fell {n} frames behind and was dropped"
+                    ));
+                    metrics.error(&e);
+                    Err(e)
+                }
+            })
+            .take_while(move |item| {
+                // Stop after the first error.
+                let go = !failed;
+                failed |= item.is_err();
+                futures::future::ready(go)
+            });
+        Ok(Box::pin(stream))
+    }
+
+    /// True while models are loaded and the service accepts work.
+    pub(crate) fn is_ready(&self) -> bool {
+        self.ready.load(Ordering::Acquire)
+    }
+
+    /// Resolves once shutdown has begun (for ending long-lived request streams).
+    pub(crate) fn shutting_down(&self) -> impl std::future::Future<Output = ()> + Send + 'static {
+        let mut rx = self.shutdown.subscribe();
+        async move {
+            let _ = rx.wait_for(|v| *v).await;
+        }
+    }
+
+    /// Emits every scene's timed-out frames; returns the earliest next deadline.
+    pub fn tick(&self, now: Instant) -> Option<Instant> {
+        self.scenes.values().filter_map(|s| s.tick(now)).min()
+    }
+
+    /// All scenes (for the timer task).
+    pub(crate) fn scene_list(&self) -> Vec<Arc<Scene>> {
+        self.scenes.values().cloned().collect()
+    }
+
+    /// Graceful shutdown: stops intake, flushes every scene's pending frames as partial results,
+    /// waits for them to be published and closes the result streams. Blocking.
+    pub fn close(&self) {
+        self.close_by(None);
+    }
+
+    /// [`close`](Self::close), but frames still queued at `deadline` are published with an
+    /// error instead of being associated (shutdown respects its grace period).
+    pub(crate) fn close_by(&self, deadline: Option<Instant>) {
+        self.ready.store(false, Ordering::Release);
+        self.shutdown.send_replace(true);
+        for s in self.scenes.values() {
+            s.close(deadline);
+        }
+    }
+}
+
+/// Watches one subscriber (until its stream is dropped): when results have waited for it,
+/// untaken, for `stall` — it stopped reading, so its transport stopped polling it — its
+/// connection is closed (for HTTP/2 that ends the connection's other streams too).
+async fn watch_stall(
+    scene: Arc<Scene>,
+    start: u64,
+    taken: std::sync::Weak<AtomicU64>,
+    conn: ConnHandle,
+    stall: Duration,
+    metrics: Metrics,
+) {
+    let tick = (stall / 4).max(Duration::from_millis(10));
+    let mut stuck_since: Option<(Instant, u64)> = None;
+    loop {
+        tokio::time::sleep(tick).await;
+        let Some(taken) = taken.upgrade() else { return };
+        let t = taken.load(Ordering::Acquire);
+        let waiting = scene.published().saturating_sub(start) > t;
+        stuck_since = match stuck_since {
+            Some((since, at)) if waiting && at == t => Some((since, at)),
+            _ if waiting => Some((Instant::now(), t)),
+            _ => None,
+        };
+        if let Some((since, _)) = stuck_since
+            && since.elapsed() >= stall
+        {
+            tracing::info!(
+                scene = scene.name(),
+                "dropping a subscriber that stopped reading"
+            );
+            metrics.error(&Error::SubscriberStalled(format!(
+                "no result read for {stall:?} (--subscriber-stall-timeout)"
+            )));
+            conn.kill();
+            return;
+        }
+    }
+}

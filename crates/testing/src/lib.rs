@@ -1,0 +1,319 @@
+//! The shared fixtures of the integration tests: a small random encoder exported with the
+//! project's exporter (real ONNX file, real ONNX Runtime), a real server on 127.0.0.1:0, gRPC
+//! and HTTP clients, hang guards (never timing assertions), the `crossview` binary runner, the
+//! WILDTRACK data, and [`skip`], which refuses to skip under `CI=true`.
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use crossview_api::pb;
+use crossview_api::pb::association_client::AssociationClient;
+use crossview_core::CameraSpec;
+use crossview_model::export::write_onnx;
+use crossview_model::{EncoderConfig, EncoderWeights, ModelMetadata};
+use crossview_serve::{ModelSpec, ServeConfig};
+use tokio::sync::oneshot;
+use tonic::transport::Channel;
+
+/// Generous upper bound for anything a test waits on (a hang guard, not a timing assertion).
+pub const HANG_GUARD: Duration = Duration::from_secs(60);
+
+/// Awaits `f`, failing the test if it takes longer than [`HANG_GUARD`].
+pub async fn guard<F: Future>(what: &str, f: F) -> F::Output {
+    tokio::time::timeout(HANG_GUARD, f)
+        .await
+        .unwrap_or_else(|_| panic!("hang guard: {what} did not finish"))
+}
+
+/// Camera names of the test scene.
+pub const CAMERAS: [&str; 3] = ["c0", "c1", "c2"];
+
+/// The test scene's cameras (different image sizes on purpose).
+pub fn cameras() -> Vec<CameraSpec> {
+    vec![
+        CameraSpec {
+            name: "c0".into(),
+            width: 1920,
+            height: 1080,
+        },
+        CameraSpec {
+            name: "c1".into(),
+            width: 1280,
+            height: 720,
+        },
+        CameraSpec {
+            name: "c2".into(),
+            width: 640,
+            height: 480,
+        },
+    ]
+}
+
+/// Exports a small random encoder for [`cameras`] to `dir/<stem>.onnx` with the project's
+/// exporter and returns its path.
+pub fn export_model(dir: &Path, stem: &str) -> PathBuf {
+    let config = EncoderConfig {
+        fourier_features: 8,
+        camera_dim: 16,
+        width: 48,
+        blocks: 2,
+    };
+    let weights = EncoderWeights::random(3, config, 11).expect("random weights");
+    let mut meta = ModelMetadata::new(cameras());
+    meta.threshold = 0.1;
+    meta.version = "test-1".into();
+    let path = dir.join(format!("{stem}.onnx"));
+    write_onnx(&path, &weights, &meta).expect("export ONNX");
+    path
+}
+
+/// A server running in this process on 127.0.0.1:0 with one scene, `lab`.
+pub struct TestServer {
+    pub addr: SocketAddr,
+    pub dir: tempfile::TempDir,
+    stop: Option<oneshot::Sender<()>>,
+    task: Option<tokio::task::JoinHandle<crossview_core::Result<()>>>,
+}
+
+/// Starts a server with scene `lab` (3 cameras); `configure` adjusts the configuration.
+pub async fn start(configure: impl FnOnce(&mut ServeConfig)) -> TestServer {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let model = export_model(dir.path(), "lab");
+    let models = vec![ModelSpec::parse(model.to_str().unwrap()).unwrap()];
+    serve_in(dir, models, configure).await
+}
+
+/// Starts a server with the scenes of `models`; `configure` adjusts the configuration.
+pub async fn start_with(
+    models: Vec<ModelSpec>,
+    configure: impl FnOnce(&mut ServeConfig),
+) -> TestServer {
+    serve_in(tempfile::tempdir().expect("tempdir"), models, configure).await
+}
+
+async fn serve_in(
+    dir: tempfile::TempDir,
+    models: Vec<ModelSpec>,
+    configure: impl FnOnce(&mut ServeConfig),
+) -> TestServer {
+    let mut config = ServeConfig {
+        models,
+        ..ServeConfig::default()
+    };
+    configure(&mut config);
+    let server_uses_tls = config.tls.is_some();
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+        .await
+        .expect("bind");
+    let addr = listener.local_addr().unwrap();
+    let (tx, rx) = oneshot::channel::<()>();
+    let task = tokio::spawn(crossview_serve::run(config, listener, async move {
+        let _ = rx.await;
+    }));
+    let server = TestServer {
+        addr,
+        dir,
+        stop: Some(tx),
+        task: Some(task),
+    };
+    if server_uses_tls {
+        // Connections wait in the listener's backlog until the server accepts them.
+        return server;
+    }
+    let http = reqwest::Client::new();
+    guard("server readiness", async {
+        loop {
+            if let Ok(r) = http.get(server.url("/readyz")).send().await
+                && r.status().is_success()
+            {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    server
+}
+
+impl TestServer {
+    /// `http://addr{path}`.
+    pub fn url(&self, path: &str) -> String {
+        format!("http://{}{}", self.addr, path)
+    }
+
+    /// A new gRPC connection (its own TCP connection).
+    pub async fn grpc(&self) -> AssociationClient<Channel> {
+        let ch = Channel::from_shared(format!("http://{}", self.addr))
+            .unwrap()
+            .connect()
+            .await
+            .expect("gRPC connect");
+        AssociationClient::new(ch)
+    }
+
+    /// `/metrics` text.
+    pub async fn metrics(&self) -> String {
+        reqwest::get(self.url("/metrics"))
+            .await
+            .unwrap()
+            .text()
+            .await
+            .unwrap()
+    }
+
+    /// Triggers graceful shutdown and waits for `run` to return.
+    pub async fn shutdown(mut self) -> crossview_core::Result<()> {
+        if let Some(tx) = self.stop.take() {
+            let _ = tx.send(());
+        }
+        let task = self.task.take().unwrap();
+        guard("server shutdown", task).await.expect("server task")
+    }
+}
+
+impl Drop for TestServer {
+    fn drop(&mut self) {
+        if let Some(tx) = self.stop.take() {
+            let _ = tx.send(());
+        }
+    }
+}
+
+/// Value of the metric line starting with `prefix` (name plus labels), 0 when absent.
+pub fn metric(text: &str, prefix: &str) -> f64 {
+    text.lines()
+        .find(|l| l.starts_with(prefix))
+        .and_then(|l| l.rsplit(' ').next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0.0)
+}
+
+/// A protobuf detection.
+pub fn det(x1: f32, y1: f32, x2: f32, y2: f32) -> pb::Detection {
+    pb::Detection {
+        bbox: Some(pb::BoundingBox { x1, y1, x2, y2 }),
+        score: None,
+        appearance: vec![],
+    }
+}
+
+/// `n` deterministic, valid detections that depend on camera and frame, inside the camera's
+/// image (boxes wrap around it, so any `n` fits).
+pub fn dets(camera: usize, frame: u64, n: usize) -> Vec<pb::Detection> {
+    let cam = &cameras()[camera];
+    let (w, h) = (cam.width as f32, cam.height as f32);
+    (0..n)
+        .map(|i| {
+            let x =
+                (10.0 + 50.0 * i as f32 + 3.0 * camera as f32 + (frame % 7) as f32) % (w - 40.0);
+            let y = (20.0 + i as f32 + 7.0 * (i as f32 * 50.0 / w).floor()) % (h - 200.0);
+            det(x, y, x + 30.0, y + 180.0)
+        })
+        .collect()
+}
+
+/// Peak resident memory of this process (VmHWM) in bytes.
+pub fn vm_hwm_bytes() -> u64 {
+    let status = std::fs::read_to_string("/proc/self/status").expect("/proc/self/status");
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+        .expect("VmHWM in /proc/self/status")
+        * 1024
+}
+
+/// A protobuf batch of scene `lab`.
+pub fn batch(camera: usize, frame: u64, n: usize) -> pb::Batch {
+    pb::Batch {
+        scene: "lab".into(),
+        camera: CAMERAS[camera].into(),
+        frame_id: frame,
+        detections: dets(camera, frame, n),
+    }
+}
+
+/// The same batch in its SPEC §7 JSON form.
+pub fn batch_json(camera: usize, frame: u64, n: usize) -> serde_json::Value {
+    let dets: Vec<serde_json::Value> = dets(camera, frame, n)
+        .into_iter()
+        .map(|d| {
+            let b = d.bbox.unwrap();
+            serde_json::json!({ "bbox": [b.x1, b.y1, b.x2, b.y2] })
+        })
+        .collect();
+    serde_json::json!({ "camera": CAMERAS[camera], "frame_id": frame, "detections": dets })
+}
+
+/// Checks a result's identities: members point at existing boxes, at most one per camera per
+/// identity, and no box in two identities.
+pub fn check_identities(r: &pb::FrameResult, boxes_per_camera: &[usize]) {
+    let mut seen = std::collections::HashSet::new();
+    for id in &r.identities {
+        assert!((0.0..=1.0).contains(&id.confidence), "{id:?}");
+        let mut cams = std::collections::HashSet::new();
+        for m in &id.members {
+            let c = m.camera_index as usize;
+            assert_eq!(m.camera, CAMERAS[c]);
+            assert!((m.index as usize) < boxes_per_camera[c], "{m:?}");
+            assert!(cams.insert(c), "two members of one camera in {id:?}");
+            assert!(seen.insert((c, m.index)), "box in two identities: {m:?}");
+        }
+    }
+}
+
+/// The repository root (where `models/`, `scenes/`, `proto/` and `.cache/` live).
+pub fn repo_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+/// Whether this is a CI run (`CI` set to anything but empty, `0` or `false`): there a test
+/// must not skip for want of a dependency.
+pub(crate) fn in_ci() -> bool {
+    std::env::var("CI").is_ok_and(|v| !v.is_empty() && v != "0" && v != "false")
+}
+
+/// Reports that a test cannot run its real dependency (`reason` says which and how to get it):
+/// a `SKIPPED` note on a developer's machine, a failure under `CI=true` — a skipped test must
+/// never pass as green in CI. The caller returns after it.
+pub fn skip(reason: &str) {
+    assert!(!in_ci(), "CI=true, so this test may not skip: {reason}");
+    eprintln!("SKIPPED: {reason}");
+}
+
+/// The WILDTRACK data: `$CROSSVIEW_WILDTRACK_DIR` if set, else `../shared/data/wildtrack`
+/// beside the repository; `None` (after [`skip`]) when it is absent.
+pub fn wildtrack_dir() -> Option<PathBuf> {
+    let dir = std::env::var_os("CROSSVIEW_WILDTRACK_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| repo_root().join("../shared/data/wildtrack"));
+    if dir.join("annotations_positions").is_dir() {
+        Some(dir)
+    } else {
+        skip(&format!(
+            "WILDTRACK data not found at {} (set CROSSVIEW_WILDTRACK_DIR)",
+            dir.display()
+        ));
+        None
+    }
+}
+
+/// Runs the `crossview` binary `bin` (the test's `env!("CARGO_BIN_EXE_crossview")`) with
+/// `args` and extra environment `env` (`CROSSVIEW_WORKERS` cleared); asserts success and
+/// returns its stdout.
+pub fn run_crossview(bin: &str, args: &[&str], env: &[(&str, &str)]) -> String {
+    let out = std::process::Command::new(bin)
+        .args(args)
+        .env_remove("CROSSVIEW_WORKERS")
+        .envs(env.iter().copied())
+        .output()
+        .expect("run crossview");
+    assert!(
+        out.status.success(),
+        "crossview {args:?} failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout).expect("UTF-8 output")
+}

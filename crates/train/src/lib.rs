@@ -1,0 +1,31 @@
+//! Self-supervised training (SPEC §2–§4) with candle, exporting SPEC §8 ONNX files.
+//!
+//! - [`data`]: the recording as per-frame, per-camera normalised images.
+//! - [`clean`]: **[ours]** dropping static and small detector boxes before training.
+//! - [`sampler`]: anchor/positive/negative triplets.
+//! - [`model`]: the candle encoder + decoder, convertible to [`crossview_model::EncoderWeights`].
+//! - [`losses`]: synchronization, re-projection and edge losses, batched over triplets.
+//! - [`pseudo`]: **[ours]** pseudo-identity labels from confident identities (self-training).
+//! - [`adam`]: the optimiser, with checkpointable state.
+//! - [`label_free`]: **[ours]** scores on held-out unlabelled frames that choose the epoch
+//!   and the threshold without labels.
+//! - [`calibrate`]: **[ours]** label-free `P(same person | distance)` for a trained encoder.
+//! - [`run`]: one whole run as `crossview train` does it, files written.
+
+pub mod adam;
+pub mod calibrate;
+pub mod checkpoint;
+pub mod clean;
+pub mod curve;
+pub mod data;
+pub mod label_free;
+pub mod losses;
+pub mod model;
+pub mod pseudo;
+pub mod run;
+pub mod sampler;
+pub mod trainer;
+pub mod validate;
+
+pub use data::TrainingSet;
+pub use model::TrainModel;

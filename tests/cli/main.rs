@@ -1,0 +1,11 @@
+//! The `crossview` binary as a user runs it, one module per subcommand or guarantee: demo,
+//! eval, model, serve, train, the offline worker pool, and the end-to-end check that what a
+//! client of the server receives scores like `crossview eval`.
+
+mod demo;
+mod eval;
+mod model;
+mod offline_workers;
+mod serve;
+mod served_identities_wildtrack;
+mod train;

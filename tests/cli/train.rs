@@ -1,0 +1,209 @@
+//! `crossview train` as a user runs it: writes the ONNX model (with metadata; the epoch chosen
+//! without labels on held-out frames), the SVG curve and the history; records the training-box
+//! filter; refuses a one-camera recording and a filter that leaves no boxes clearly.
+use std::process::Command;
+
+use crossview_core::{CameraSpec, Detection, Frame, SceneSpec};
+use crossview_data::Recording;
+use crossview_data::recording::write_recording;
+use crossview_model::read_weights;
+
+fn recording(cameras: usize, frames: usize, ids: bool) -> Recording {
+    let cams: Vec<CameraSpec> = (0..cameras)
+        .map(|c| CameraSpec {
+            name: format!("cam{c}"),
+            width: 100,
+            height: 100,
+        })
+        .collect();
+    let frames = (0..frames)
+        .map(|f| {
+            let mut fr = Frame::new(f as u64, cameras);
+            for c in 0..cameras {
+                fr.views[c] = Some(
+                    (0..3)
+                        .map(|p| {
+                            let x = 10.0 + 25.0 * p as f32 + (f % 7) as f32 + 3.0 * c as f32;
+                            let mut d = Detection::new([x, 20.0, x + 10.0, 60.0 + p as f32]);
+                            d.id = ids.then_some(p);
+                            d
+                        })
+                        .collect(),
+                );
+            }
+            fr
+        })
+        .collect();
+    Recording {
+        scene: SceneSpec {
+            name: "tiny".into(),
+            cameras: cams,
+        },
+        frames,
+    }
+}
+
+#[test]
+fn train_writes_model_curve_and_history() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("train.jsonl");
+    let val = dir.path().join("val.jsonl");
+    write_recording(&data, &recording(2, 24, false)).unwrap();
+    write_recording(&val, &recording(2, 12, true)).unwrap();
+    let out = dir.path().join("m.onnx");
+    let st = Command::new(env!("CARGO_BIN_EXE_crossview"))
+        .args([
+            "train",
+            "--quiet",
+            "--epochs",
+            "3",
+            "--triplets-per-step",
+            "4",
+        ])
+        .args([
+            "--width",
+            "24",
+            "--fourier-features",
+            "8",
+            "--camera-dim",
+            "8",
+        ])
+        .args(["--max-edges", "4", "--val-every", "1", "--seed", "3"])
+        .args(["--self-train-epochs", "2"])
+        .arg("--data")
+        .arg(&data)
+        .arg("--val")
+        .arg(&val)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    assert!(String::from_utf8_lossy(&st.stdout).contains("val ACC"));
+    let (w, meta) = read_weights(&out).unwrap();
+    assert_eq!(w.config.width, 24);
+    assert_eq!(meta.cameras.len(), 2);
+    assert!((0.0..=0.9).contains(&meta.threshold));
+    assert_eq!(meta.extra["crossview.training_data"], "train.jsonl");
+    assert!(meta.extra["crossview.validation"].contains("\"acc\""));
+    assert!(meta.extra.contains_key("crossview.steps"));
+    let svg = std::fs::read_to_string(dir.path().join("m.svg")).unwrap();
+    assert!(svg.starts_with("<svg"));
+    let hist: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("m.history.json")).unwrap()).unwrap();
+    // 3 first-stage epochs and 2 of self-training, each scored.
+    let hist = hist.as_array().unwrap();
+    assert_eq!(hist.len(), 5);
+    assert!(
+        hist.iter()
+            .all(|r| !r["label_free"].is_null() && !r["val"].is_null())
+    );
+    assert!(meta.extra["crossview.selection"].contains("label-free"));
+}
+
+#[test]
+fn without_validation_the_given_threshold_is_kept() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("train.jsonl");
+    write_recording(&data, &recording(3, 20, true)).unwrap();
+    let out = dir.path().join("m.onnx");
+    let st = Command::new(env!("CARGO_BIN_EXE_crossview"))
+        .args(["train", "--quiet", "--epochs", "1", "--width", "16"])
+        .args(["--self-train-epochs", "0"])
+        .args([
+            "--fourier-features",
+            "4",
+            "--camera-dim",
+            "4",
+            "--threshold",
+            "0.3",
+        ])
+        .arg("--data")
+        .arg(&data)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    let (_, meta) = read_weights(&out).unwrap();
+    assert!((meta.threshold - 0.3).abs() < 1e-6);
+    assert!(!meta.extra.contains_key("crossview.validation"));
+}
+
+#[test]
+fn one_camera_is_refused_with_a_clear_message() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("one.jsonl");
+    write_recording(&data, &recording(1, 30, false)).unwrap();
+    let st = Command::new(env!("CARGO_BIN_EXE_crossview"))
+        .args(["train", "--quiet", "--epochs", "1"])
+        .arg("--data")
+        .arg(&data)
+        .arg("--out")
+        .arg(dir.path().join("m.onnx"))
+        .output()
+        .unwrap();
+    assert!(!st.status.success());
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(err.contains("at least two"), "{err}");
+    assert!(!dir.path().join("m.onnx").exists());
+}
+
+#[test]
+fn box_filter_is_recorded_and_an_empty_result_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("train.jsonl");
+    write_recording(&data, &recording(2, 24, false)).unwrap();
+    let train = |extra: &[&str], out: &std::path::Path| {
+        Command::new(env!("CARGO_BIN_EXE_crossview"))
+            .args(["train", "--quiet", "--epochs", "1", "--width", "16"])
+            .args([
+                "--fourier-features",
+                "8",
+                "--camera-dim",
+                "8",
+                "--self-train-epochs",
+                "0",
+            ])
+            .args(extra)
+            .arg("--data")
+            .arg(&data)
+            .arg("--out")
+            .arg(out)
+            .output()
+            .unwrap()
+    };
+    // Boxes are 40-43 px of a 100 px image: 0.3 keeps them all and is stored in the model.
+    let out = dir.path().join("kept.onnx");
+    let st = train(
+        &["--min-box-height", "0.3", "--drop-static-iou", "0.95"],
+        &out,
+    );
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    let (_, meta) = read_weights(&out).unwrap();
+    let filter = &meta.extra["crossview.train_box_filter"];
+    assert!(filter.contains("\"min_height\":0.3"), "{filter}");
+    assert!(filter.contains("\"static_iou\":0.95"), "{filter}");
+    // 0.5 removes every box: a clear refusal, no model written.
+    let out = dir.path().join("empty.onnx");
+    let st = train(&["--min-box-height", "0.5"], &out);
+    assert!(!st.status.success());
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(err.contains("no training boxes left"), "{err}");
+    assert!(!out.exists());
+    let st = train(&["--min-box-height", "1.5"], &out);
+    assert!(!st.status.success());
+    assert!(String::from_utf8_lossy(&st.stderr).contains("--min-box-height"));
+}

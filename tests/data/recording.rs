@@ -1,0 +1,529 @@
+//! Recording format (SPEC §7): round trips and the error for each kind of malformed line.
+use std::io::Write;
+
+use crossview_core::Error;
+use crossview_core::{Batch, CameraSpec, Detection, Frame, SceneSpec};
+use crossview_data::{
+    Recording, RecordingReader, RecordingWriter, read_recording, read_recording_with,
+    write_recording,
+};
+
+fn scene() -> SceneSpec {
+    SceneSpec {
+        name: "lab".into(),
+        cameras: vec![
+            CameraSpec {
+                name: "a".into(),
+                width: 640,
+                height: 480,
+            },
+            CameraSpec {
+                name: "b".into(),
+                width: 1920,
+                height: 1080,
+            },
+        ],
+    }
+}
+
+const HEADER: &str = r#"{"scene": {"name": "lab", "cameras": [{"name": "a", "width": 640, "height": 480}, {"name": "b", "width": 1920, "height": 1080}]}}"#;
+
+fn det(x: f32, id: Option<u64>) -> Detection {
+    Detection {
+        bbox: [x, 10.0, x + 20.0, 80.0],
+        score: 0.5,
+        id,
+        appearance: None,
+    }
+}
+
+fn write_file(dir: &tempfile::TempDir, name: &str, text: &str) -> std::path::PathBuf {
+    let path = dir.path().join(name);
+    let mut f = std::fs::File::create(&path).unwrap();
+    f.write_all(text.as_bytes()).unwrap();
+    path
+}
+
+/// Reads `lines` (joined with newlines) and returns the format error's line and message.
+fn format_error(lines: &[&str]) -> (usize, String) {
+    let dir = tempfile::tempdir().unwrap();
+    let path = write_file(&dir, "bad.jsonl", &(lines.join("\n") + "\n"));
+    match read_recording(&path) {
+        Err(Error::Format {
+            source_name,
+            line,
+            message,
+        }) => {
+            assert_eq!(source_name, path.display().to_string());
+            (line, message)
+        }
+        other => panic!("expected a format error, got {other:?}"),
+    }
+}
+
+#[test]
+fn round_trip_keeps_frames_views_and_empty_batches() {
+    let batches = vec![
+        Batch {
+            camera: "b".into(),
+            frame_id: 10,
+            detections: vec![det(5.0, Some(3)), det(50.0, None)],
+        },
+        Batch {
+            camera: "a".into(),
+            frame_id: 10,
+            detections: vec![],
+        },
+        Batch {
+            camera: "a".into(),
+            frame_id: 5,
+            detections: vec![det(1.0, Some(1))],
+        },
+    ];
+    let rec = Recording::from_batches(scene(), batches).unwrap();
+    assert_eq!(rec.frame_ids(), vec![5, 10]);
+    assert_eq!(
+        rec.frames[0].views[1], None,
+        "camera b did not report frame 5"
+    );
+    assert!(!rec.frames[0].is_complete());
+    assert_eq!(rec.frames[1].views[0], Some(vec![]));
+    assert!(
+        rec.frames[1].is_complete(),
+        "an empty batch completes a frame"
+    );
+    assert_eq!(rec.num_boxes(), 3);
+
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("rec.jsonl");
+    write_recording(&path, &rec).unwrap();
+    let text = std::fs::read_to_string(&path).unwrap();
+    assert_eq!(text.lines().count(), 4, "header + 3 batches:\n{text}");
+    assert!(text.contains(r#""camera":"a","frame_id":10,"detections":[]"#));
+    let back = read_recording(&path).unwrap();
+    assert_eq!(back, rec);
+    assert!(back.frames[1].is_complete());
+}
+
+#[test]
+fn streaming_reader_and_writer_agree() {
+    let mut writer = RecordingWriter::new(Vec::new(), "memory", &scene()).unwrap();
+    for f in 0..50u64 {
+        let batch = Batch {
+            camera: if f % 2 == 0 { "a" } else { "b" }.into(),
+            frame_id: f,
+            detections: vec![det(f as f32, Some(f))],
+        };
+        writer.write_batch(&batch).unwrap();
+    }
+    let bytes = writer.finish().unwrap();
+    let reader = RecordingReader::new(bytes.as_slice(), "memory").unwrap();
+    assert_eq!(reader.scene(), &scene());
+    let batches: Vec<Batch> = reader.collect::<Result<_, _>>().unwrap();
+    assert_eq!(batches.len(), 50);
+    assert_eq!(batches[7].frame_id, 7);
+    assert_eq!(batches[7].camera, "b");
+    assert_eq!(batches[7].detections[0].id, Some(7));
+}
+
+#[test]
+fn writer_rejects_unknown_camera() {
+    let mut writer = RecordingWriter::new(Vec::new(), "memory", &scene()).unwrap();
+    let err = writer
+        .write_batch(&Batch {
+            camera: "zz".into(),
+            frame_id: 0,
+            detections: vec![],
+        })
+        .unwrap_err();
+    assert!(err.to_string().contains("zz"), "{err}");
+}
+
+#[test]
+fn defaults_and_blank_lines() {
+    let (dir, text) = (
+        tempfile::tempdir().unwrap(),
+        format!(
+            "{HEADER}\n\n{}\n  \n{}\n",
+            r#"{"camera": "a", "frame_id": 3, "detections": [{"bbox": [1, 2, 3, 4]}]}"#,
+            r#"{"camera": "b", "frame_id": 3, "detections": [{"bbox": [1, 2, 3, 4], "id": 9, "appearance": [0.5, 1]}]}"#
+        ),
+    );
+    let path = write_file(&dir, "ok.jsonl", &text);
+    let rec = read_recording(&path).unwrap();
+    let a = &rec.frames[0].views[0].as_ref().unwrap()[0];
+    assert_eq!(a.score, 1.0);
+    assert_eq!(a.id, None);
+    let b = &rec.frames[0].views[1].as_ref().unwrap()[0];
+    assert_eq!(b.id, Some(9));
+    assert_eq!(b.appearance.as_deref(), Some(&[0.5, 1.0][..]));
+}
+
+#[test]
+fn empty_file_is_missing_header() {
+    let (line, msg) = format_error(&[]);
+    assert_eq!(line, 1);
+    assert!(msg.contains("missing the scene header"), "{msg}");
+}
+
+#[test]
+fn batch_as_first_line_is_invalid_header() {
+    let (line, msg) = format_error(&[r#"{"camera": "a", "frame_id": 0, "detections": []}"#]);
+    assert_eq!(line, 1);
+    assert!(msg.contains("invalid scene header"), "{msg}");
+}
+
+#[test]
+fn header_with_duplicate_camera_names_is_rejected() {
+    let (line, msg) = format_error(&[
+        r#"{"scene": {"name": "x", "cameras": [{"name": "a", "width": 1, "height": 1}, {"name": "a", "width": 1, "height": 1}]}}"#,
+    ]);
+    assert_eq!(line, 1);
+    assert!(msg.contains("'a' is used twice"), "{msg}");
+}
+
+#[test]
+fn header_with_zero_size_is_rejected() {
+    let (line, msg) = format_error(&[
+        r#"{"scene": {"name": "x", "cameras": [{"name": "a", "width": 0, "height": 10}]}}"#,
+    ]);
+    assert_eq!(line, 1);
+    assert!(msg.contains("zero image size"), "{msg}");
+}
+
+#[test]
+fn malformed_json_names_its_line() {
+    let (line, msg) = format_error(&[
+        HEADER,
+        r#"{"camera": "a", "frame_id": 0, "detections": []}"#,
+        r#"{"camera": "a", "frame_id": 5, "detections": [}"#,
+    ]);
+    assert_eq!(line, 3);
+    assert!(msg.contains("malformed batch"), "{msg}");
+}
+
+#[test]
+fn negative_frame_id_is_malformed() {
+    let (line, msg) = format_error(&[
+        HEADER,
+        r#"{"camera": "a", "frame_id": -1, "detections": []}"#,
+    ]);
+    assert_eq!(line, 2);
+    assert!(msg.contains("malformed batch"), "{msg}");
+}
+
+#[test]
+fn unknown_camera_is_named() {
+    let (line, msg) = format_error(&[
+        HEADER,
+        "",
+        r#"{"camera": "ghost", "frame_id": 0, "detections": []}"#,
+    ]);
+    assert_eq!(line, 3, "blank lines count");
+    assert!(msg.contains("unknown camera 'ghost'"), "{msg}");
+    assert!(msg.contains("a, b"), "lists the scene's cameras: {msg}");
+}
+
+#[test]
+fn duplicate_batch_is_rejected() {
+    let (line, msg) = format_error(&[
+        HEADER,
+        r#"{"camera": "a", "frame_id": 0, "detections": []}"#,
+        r#"{"camera": "b", "frame_id": 0, "detections": []}"#,
+        r#"{"camera": "a", "frame_id": 0, "detections": []}"#,
+    ]);
+    assert_eq!(line, 4);
+    assert!(
+        msg.contains("duplicate batch: camera 'a' already reported frame 0"),
+        "{msg}"
+    );
+}
+
+#[test]
+fn duplicate_check_can_be_switched_off_for_streams() {
+    let line = r#"{"camera": "b", "frame_id": 70, "detections": []}"#;
+    let text = format!("{HEADER}\n{line}\n{line}\n");
+    let reader = RecordingReader::new(text.as_bytes(), "mem").unwrap();
+    let results: Vec<_> = reader.collect();
+    assert!(
+        results[1]
+            .as_ref()
+            .unwrap_err()
+            .to_string()
+            .contains("duplicate batch")
+    );
+    let reader = RecordingReader::new(text.as_bytes(), "mem")
+        .unwrap()
+        .without_duplicate_check();
+    assert_eq!(reader.filter(Result::is_ok).count(), 2);
+}
+
+#[test]
+fn invalid_detection_names_the_field() {
+    let (line, msg) = format_error(&[
+        HEADER,
+        r#"{"camera": "b", "frame_id": 2, "detections": [{"bbox": [1, 2, 3, 4]}, {"bbox": [1, 2, 3, 4]}, {"bbox": [1, 2, 3, 4]}, {"bbox": [5, 2, 3, 4]}]}"#,
+    ]);
+    assert_eq!(line, 2);
+    assert!(msg.contains("detections[3].bbox"), "{msg}");
+    assert!(msg.contains("camera 'b' frame 2"), "{msg}");
+}
+
+#[test]
+fn box_outside_the_image_and_bad_score_are_rejected() {
+    let (_, msg) = format_error(&[
+        HEADER,
+        r#"{"camera": "a", "frame_id": 0, "detections": [{"bbox": [-9, 2, -3, 4]}]}"#,
+    ]);
+    assert!(
+        msg.contains("detections[0].bbox") && msg.contains("entirely outside"),
+        "{msg}"
+    );
+    let (_, msg) = format_error(&[
+        HEADER,
+        r#"{"camera": "a", "frame_id": 0, "detections": [{"bbox": [1, 2, 3, 4], "score": 1.5}]}"#,
+    ]);
+    assert!(msg.contains("detections[0].score"), "{msg}");
+}
+
+#[test]
+fn inconsistent_appearance_length_is_rejected() {
+    let (line, msg) = format_error(&[
+        HEADER,
+        r#"{"camera": "a", "frame_id": 0, "detections": [{"bbox": [1, 2, 3, 4], "appearance": [1, 2, 3]}]}"#,
+        r#"{"camera": "b", "frame_id": 0, "detections": [{"bbox": [1, 2, 3, 4], "appearance": [1, 2, 3]}, {"bbox": [1, 2, 3, 4], "appearance": [1, 2]}]}"#,
+    ]);
+    assert_eq!(line, 3);
+    assert!(
+        msg.contains("detections[1].appearance") && msg.contains("expected 3 values, got 2"),
+        "{msg}"
+    );
+}
+
+#[test]
+fn reader_stops_after_first_error() {
+    let text = format!(
+        "{HEADER}\n{}\n{}\n",
+        r#"{"camera": "x", "frame_id": 0, "detections": []}"#,
+        r#"{"camera": "a", "frame_id": 0, "detections": []}"#
+    );
+    let mut reader = RecordingReader::new(text.as_bytes(), "mem").unwrap();
+    assert!(reader.next().unwrap().is_err());
+    assert!(reader.next().is_none());
+}
+
+#[test]
+fn from_batches_errors() {
+    let dup = vec![
+        Batch {
+            camera: "a".into(),
+            frame_id: 1,
+            detections: vec![],
+        };
+        2
+    ];
+    assert!(matches!(
+        Recording::from_batches(scene(), dup),
+        Err(Error::DuplicateBatch { frame_id: 1, .. })
+    ));
+    let unknown = vec![Batch {
+        camera: "q".into(),
+        frame_id: 1,
+        detections: vec![],
+    }];
+    assert!(matches!(
+        Recording::from_batches(scene(), unknown),
+        Err(Error::UnknownCamera { .. })
+    ));
+    let nan = vec![Batch {
+        camera: "a".into(),
+        frame_id: 1,
+        detections: vec![Detection::new([f32::NAN, 0.0, 1.0, 1.0])],
+    }];
+    match Recording::from_batches(scene(), nan) {
+        Err(Error::InvalidArgument { field, .. }) => assert_eq!(field, "a@1.detections[0].bbox"),
+        other => panic!("{other:?}"),
+    }
+}
+
+#[test]
+fn helpers_filter_strip_and_write_back() {
+    let mut frames = Vec::new();
+    for f in [0u64, 5, 10, 15] {
+        let mut frame = Frame::new(f, 2);
+        frame.views[0] = Some(vec![det(1.0, Some(f))]);
+        if f != 5 {
+            frame.views[1] = Some(vec![]);
+        }
+        frames.push(frame);
+    }
+    let rec = Recording {
+        scene: scene(),
+        frames,
+    };
+    assert_eq!(rec.filter_frames(5..=10).frame_ids(), vec![5, 10]);
+    assert_eq!(rec.filter_frames(11..).frame_ids(), vec![15]);
+    let stripped = rec.without_ids();
+    assert!(
+        stripped
+            .frames
+            .iter()
+            .flat_map(|f| f.views.iter().flatten().flatten())
+            .all(|d| d.id.is_none())
+    );
+    assert_eq!(stripped.num_boxes(), 4);
+    let batches: Vec<Batch> = rec.batches().collect();
+    assert_eq!(
+        batches.len(),
+        7,
+        "frame 5's camera b did not report and is omitted"
+    );
+    assert!(
+        batches
+            .iter()
+            .any(|b| b.camera == "b" && b.frame_id == 0 && b.detections.is_empty())
+    );
+    assert_eq!(Recording::from_batches(scene(), batches).unwrap(), rec);
+}
+
+#[test]
+fn missing_file_is_io_error() {
+    let err = read_recording("/nonexistent/rec.jsonl").unwrap_err();
+    assert!(matches!(err, Error::Io { .. }), "{err}");
+}
+
+#[test]
+fn duplicates_are_found_with_more_than_64_cameras() {
+    let cameras: Vec<CameraSpec> = (0..70)
+        .map(|i| CameraSpec {
+            name: format!("c{i}"),
+            width: 10,
+            height: 10,
+        })
+        .collect();
+    let scene = SceneSpec {
+        name: "wide".into(),
+        cameras,
+    };
+    let mut writer = RecordingWriter::new(Vec::new(), "mem", &scene).unwrap();
+    for cam in ["c1", "c65", "c66", "c65"] {
+        writer
+            .write_batch(&Batch {
+                camera: cam.into(),
+                frame_id: 3,
+                detections: vec![],
+            })
+            .unwrap();
+    }
+    let bytes = writer.finish().unwrap();
+    let results: Vec<_> = RecordingReader::new(bytes.as_slice(), "mem")
+        .unwrap()
+        .collect();
+    assert!(results[..3].iter().all(Result::is_ok));
+    match &results[3] {
+        Err(Error::Format { line, message, .. }) => {
+            assert_eq!(*line, 5);
+            assert!(
+                message.contains("camera 'c65' already reported frame 3"),
+                "{message}"
+            );
+        }
+        other => panic!("{other:?}"),
+    }
+}
+
+#[test]
+fn cli_split_reads_stdin_and_writes_stdout() {
+    use std::process::{Command, Stdio};
+    let mut frames = Vec::new();
+    for f in 0..20u64 {
+        let mut frame = Frame::new(f, 2);
+        frame.views[0] = Some(vec![det(1.0, Some(f))]);
+        frame.views[1] = Some(vec![]);
+        frames.push(frame);
+    }
+    let rec = Recording {
+        scene: scene(),
+        frames,
+    };
+    let mut input = RecordingWriter::new(Vec::new(), "mem", &rec.scene).unwrap();
+    for frame in &rec.frames {
+        input.write_frame(frame).unwrap();
+    }
+    let input = input.finish().unwrap();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_crossview"))
+        .args(["split", "--data", "-", "--part", "test", "--out", "-"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    child.stdin.take().unwrap().write_all(&input).unwrap();
+    let out = child.wait_with_output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // 20 frames: test = ceil(20/10) = 2 frames (18, 19); summary goes to stderr.
+    let back = RecordingReader::new(out.stdout.as_slice(), "stdout").unwrap();
+    let batches: Vec<Batch> = back.collect::<Result<_, _>>().unwrap();
+    assert_eq!(
+        Recording::from_batches(scene(), batches).unwrap(),
+        rec.filter_frames(18..)
+    );
+    let summary = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        summary.contains("2 frames (18..=19)") && summary.contains("2 cameras"),
+        "{summary}"
+    );
+}
+
+#[test]
+fn boxes_overlapping_the_image_edge_are_clipped_and_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = [
+        HEADER,
+        // WILDTRACK-style y1 = -1, and one sticking out right and below (camera a is 640x480).
+        r#"{"camera": "a", "frame_id": 0, "detections": [{"bbox": [10, -1, 50, 90]}, {"bbox": [600, 400, 642, 481]}]}"#,
+    ]
+    .join("\n");
+    let path = write_file(&dir, "edge.jsonl", &text);
+    let (rec, stats) = read_recording_with(&path, true).unwrap();
+    let boxes: Vec<[f32; 4]> = rec.frames[0].views[0]
+        .as_ref()
+        .unwrap()
+        .iter()
+        .map(|d| d.bbox)
+        .collect();
+    assert_eq!(
+        boxes,
+        vec![[10.0, 0.0, 50.0, 90.0], [600.0, 400.0, 640.0, 480.0]]
+    );
+    assert_eq!(stats.clipped_boxes, 2);
+    assert_eq!(stats.skipped_boxes + stats.skipped_lines, 0);
+}
+
+#[test]
+fn a_lenient_reader_skips_broken_boxes_and_lines_with_a_count() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = [
+        HEADER,
+        r#"{"camera": "a", "frame_id": 0, "detections": [{"bbox": [10, 10, 50, 90]}, {"bbox": [50, 10, 40, 90]}]}"#,
+        r#"{"camera": "b", "frame_id": 0, "detections": [{"bbox": [5000, 10, 6000, 90]}, {"bbox": [1, 1, 9, 9]}]}"#,
+        r#"{"camera": "a", "frame_id": 1, "detections": [{"bbox": [1, 1, 9"#,
+        r#"{"camera": "zz", "frame_id": 1, "detections": []}"#,
+        r#"{"camera": "a", "frame_id": 0, "detections": []}"#,
+        r#"{"camera": "a", "frame_id": 2, "detections": [{"bbox": [1, 1, 9, 9]}]}"#,
+    ]
+    .join("\n");
+    let path = write_file(&dir, "careless.jsonl", &text);
+    // Strict: the first broken box aborts.
+    assert!(read_recording_with(&path, true).is_err());
+    let (rec, stats) = read_recording_with(&path, false).unwrap();
+    assert_eq!(stats.skipped_boxes, 2, "{stats:?}");
+    assert_eq!(stats.skipped_lines, 3, "{stats:?}");
+    assert!(stats.first_problem.unwrap().contains("detections[1].bbox"));
+    assert_eq!(rec.frame_ids(), vec![0, 2]);
+    assert_eq!(rec.num_boxes(), 3);
+}

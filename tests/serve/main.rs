@@ -1,0 +1,21 @@
+//! The server's guarantees, one module per guarantee, each against the real server on
+//! 127.0.0.1:0 with a real exported ONNX model and real clients (tonic, reqwest, curl, Python
+//! grpcio). Fixtures: `crossview-testing`.
+
+mod bad_input;
+mod careless;
+mod connections;
+mod curl;
+mod frame_cost;
+mod frame_ids;
+mod fuzz;
+mod grpc_push_stream;
+mod late_duplicate;
+mod metrics_labels;
+mod ndjson_bounds;
+mod partial;
+mod python_client;
+mod shutdown;
+mod sync_order;
+mod tls;
+mod unary;
