@@ -13,6 +13,7 @@ use crossview_core::distances::{
 };
 use crossview_core::identity::build_identities;
 use crossview_core::matching::{hungarian, match_from_distances};
+use crossview_core::tracking::{Tracker, TrackerConfig};
 use crossview_core::{Detection, Frame, FrameEmbeddings};
 use ndarray::Array2;
 use rand::{Rng, SeedableRng};
@@ -231,6 +232,14 @@ fn bench<M: Measurement>(c: &mut Criterion<M>, group: &str, dim: usize) {
     }
     g.bench_function("frame_identities", |b| {
         b.iter(|| black_box(frame_identities(&frame, black_box(&embs), &cfg)))
+    });
+    // Tracking's share of a frame: one tracker update with the frame's identities against
+    // the tracks of the frames before (the same frame again: everyone continues a track).
+    let ids = frame_identities(&frame, &embs, &cfg);
+    let mut tracker = Tracker::new(TrackerConfig::default());
+    tracker.update(&frame, &ids, &embs);
+    g.bench_function("tracker_update", |b| {
+        b.iter(|| black_box(tracker.update(&frame, black_box(&ids), &embs)))
     });
     g.finish();
 }

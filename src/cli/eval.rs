@@ -14,6 +14,7 @@ use crossview_core::association::{
     AssociationConfig, FrameAssociation, Mode, associate_frame, embed_frame,
 };
 use crossview_core::matching::Match;
+use crossview_core::tracking::{Tracker, TrackerConfig};
 use crossview_core::{CameraSpec, Frame, SceneSpec};
 use crossview_data::Recording;
 use crossview_data::recording::read_recording;
@@ -22,6 +23,7 @@ use crossview_eval::dump::{read_dump, write_dump_on};
 use crossview_eval::metrics::compute_metrics;
 use crossview_eval::parallel::{DEFAULT_WINDOW, map_ordered, worker_count};
 use crossview_eval::report::{EvalReport, TableRow, format_table};
+use crossview_eval::tracking::{TrackScores, TrackingReport, evaluate_tracking};
 use crossview_model::{EncoderOptions, ModelMetadata, OnnxEncoder};
 
 /// Arguments of `crossview eval`.
@@ -66,6 +68,24 @@ pub struct EvalArgs {
     /// (default: the machine's available parallelism).
     #[arg(long, env = "CROSSVIEW_WORKERS")]
     pub workers: Option<NonZeroUsize>,
+    /// [ours] Also link the identities over time (frame order) into track ids and score them
+    /// against the recording's ids, which must be consistent over time: multi-camera and
+    /// per-camera IDF1, ID switches, MOTA.
+    #[arg(long, conflicts_with = "from_dump")]
+    pub tracking: bool,
+    /// Tracker gate: an identity continues a track only within this many times the frame's
+    /// median distance between identities (see `crossview_core::tracking`).
+    #[arg(long, default_value_t = TrackerConfig::default().gate)]
+    pub track_gate: f32,
+    /// Frames a track survives unseen before it is retired.
+    #[arg(long, default_value_t = TrackerConfig::default().max_age)]
+    pub track_max_age: u32,
+    /// How fast a track's velocity follows its motion (0 = constant position).
+    #[arg(long, default_value_t = TrackerConfig::default().velocity_weight)]
+    pub track_velocity: f32,
+    /// Weight of the image cue (box overlap with the track's last boxes, per camera).
+    #[arg(long, default_value_t = TrackerConfig::default().iou_weight)]
+    pub track_iou: f32,
 }
 
 /// Arguments of `crossview associate`.
@@ -98,6 +118,11 @@ pub struct AssociateArgs {
     /// (default: the machine's available parallelism).
     #[arg(long, env = "CROSSVIEW_WORKERS")]
     pub workers: Option<NonZeroUsize>,
+    /// [ours] Link the identities over time (frame order) and write each one's `track_id`
+    /// (`crossview_core::tracking`, default settings). The tracker runs on one thread after
+    /// the workers, so it also serialises the output.
+    #[arg(long)]
+    pub tracking: bool,
 }
 
 /// Checks that the recording's cameras are the model's, in the same order (the encoder's
@@ -270,6 +295,18 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     print!("{}", format_table(&rows));
     if let Some(r) = runs.iter().find(|r| r.mode == Mode::Identities) {
         print!("{}", r.identities.format());
+        if args.tracking {
+            let tracker = TrackerConfig {
+                gate: args.track_gate,
+                max_age: args.track_max_age,
+                velocity_weight: args.track_velocity,
+                iou_weight: args.track_iou,
+                ..TrackerConfig::default()
+            };
+            let cfg = base.with_mode(Mode::Identities, r.threshold);
+            let t = evaluate_tracking(&mut encoders, &recording, &cfg, &tracker)?;
+            print!("{}", format_tracking(&t));
+        }
     }
     if let Some(path) = &args.report {
         EvalReport::new(
@@ -286,6 +323,28 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The `--tracking` block: the multi-camera row, then one row per camera.
+fn format_tracking(t: &TrackingReport) -> String {
+    let row = |name: &str, s: &TrackScores| {
+        format!(
+            "  {name:<14} IDF1 {:6.2}  MOTA {:6.2}  ID switches {:5}  ({} boxes, {} people, {} tracks)\n",
+            100.0 * s.idf1,
+            100.0 * s.mota,
+            s.id_switches,
+            s.boxes,
+            s.people,
+            s.tracks
+        )
+    };
+    let mut out =
+        String::from("tracking (identities linked over time, track ids vs ground-truth ids):\n");
+    out.push_str(&row("multi-camera", &t.multi_camera));
+    for (name, s) in &t.per_camera {
+        out.push_str(&row(name, s));
+    }
+    out
+}
+
 /// One member of an identity in the `associate` output.
 #[derive(Debug, Serialize)]
 struct MemberOut<'a> {
@@ -298,6 +357,8 @@ struct MemberOut<'a> {
 #[derive(Debug, Serialize)]
 struct IdentityOut<'a> {
     id: usize,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    track_id: Option<u64>,
     confidence: f32,
     members: Vec<MemberOut<'a>>,
 }
@@ -325,6 +386,7 @@ fn frame_line(
     scene: &SceneSpec,
     frame: &Frame,
     assoc: &FrameAssociation,
+    tracks: Option<&[u64]>,
     mode: Mode,
 ) -> serde_json::Result<()> {
     let cam = |c: usize| scene.cameras[c].name.as_str();
@@ -334,8 +396,10 @@ fn frame_line(
         identities: assoc
             .identities
             .iter()
-            .map(|i| IdentityOut {
+            .enumerate()
+            .map(|(k, i)| IdentityOut {
                 id: i.id,
+                track_id: tracks.and_then(|t| t.get(k).copied()),
                 confidence: i.confidence,
                 members: i
                     .members
@@ -381,18 +445,40 @@ pub fn run_associate(args: AssociateArgs) -> anyhow::Result<()> {
     let mut out = std::io::BufWriter::new(file);
     let write_err = |e: std::io::Error| anyhow::anyhow!("cannot write {}: {e}", args.out.display());
     let t1 = Instant::now();
+    let mut tracker = args
+        .tracking
+        .then(|| Tracker::new(TrackerConfig::default()));
+    let frames = &recording.frames;
+    let tracking = tracker.is_some();
     map_ordered(
-        &recording.frames,
+        frames,
         &mut encoders,
         DEFAULT_WINDOW,
-        |encoder, _, frame| -> anyhow::Result<Vec<u8>> {
+        |encoder, _, frame| -> anyhow::Result<(Vec<u8>, Option<FrameAssociation>)> {
             let embeddings = embed_frame(encoder, scene, frame)?;
             let assoc = associate_frame(frame, embeddings, &cfg);
+            if tracking {
+                // Track ids need frame order: the sink writes this frame's line.
+                return Ok((Vec::new(), Some(assoc)));
+            }
             let mut line = Vec::with_capacity(32 * 1024);
-            frame_line(&mut line, scene, frame, &assoc, cfg.mode)?;
-            Ok(line)
+            frame_line(&mut line, scene, frame, &assoc, None, cfg.mode)?;
+            Ok((line, None))
         },
-        |_, line| out.write_all(&line).map_err(write_err),
+        |i, (mut line, assoc)| {
+            if let (Some(tracker), Some(assoc)) = (tracker.as_mut(), assoc) {
+                let tracks = tracker.update(&frames[i], &assoc.identities, &assoc.embeddings);
+                frame_line(
+                    &mut line,
+                    scene,
+                    &frames[i],
+                    &assoc,
+                    Some(&tracks),
+                    cfg.mode,
+                )?;
+            }
+            out.write_all(&line).map_err(write_err)
+        },
     )?;
     out.flush().map_err(write_err)?;
     tracing::info!(

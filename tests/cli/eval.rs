@@ -234,6 +234,69 @@ fn pairwise_and_identity_rows_and_associate_cover_every_box() {
 }
 
 #[test]
+fn tracking_scores_and_associate_track_ids_agree_on_every_box() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("m.onnx");
+    let data = dir.path().join("gt.jsonl");
+    let out = dir.path().join("tracks.jsonl");
+    write_model(&model);
+    let rec = recording();
+    write_recording(&data, &rec).unwrap();
+    let s = |p: &Path| p.display().to_string();
+    let table = crossview(&[
+        "eval",
+        "--model",
+        &s(&model),
+        "--data",
+        &s(&data),
+        "--tracking",
+    ]);
+    let line = |name: &str| {
+        table
+            .lines()
+            .find(|l| l.trim_start().starts_with(name))
+            .unwrap_or_else(|| panic!("no {name} row in {table}"))
+            .to_string()
+    };
+    let boxes: usize = rec.frames.iter().map(Frame::num_boxes).sum();
+    assert!(
+        line("multi-camera").contains(&format!("({boxes} boxes")),
+        "{table}"
+    );
+    for cam in ["cam0", "cam1", "cam2"] {
+        let idf1: f64 = line(cam)
+            .split_whitespace()
+            .nth(2)
+            .unwrap()
+            .parse()
+            .unwrap();
+        assert!((0.0..=100.0).contains(&idf1), "{table}");
+    }
+    // `associate --tracking` gives every identity a track id, unique within a frame.
+    crossview(&[
+        "associate",
+        "--model",
+        &s(&model),
+        "--data",
+        &s(&data),
+        "--out",
+        &s(&out),
+        "--tracking",
+    ]);
+    let text = std::fs::read_to_string(&out).unwrap();
+    let mut tracked = 0;
+    for l in text.lines() {
+        let v: serde_json::Value = serde_json::from_str(l).unwrap();
+        let mut ids = std::collections::HashSet::new();
+        for ident in v["identities"].as_array().unwrap() {
+            assert!(ids.insert(ident["track_id"].as_u64().expect("track_id")));
+            tracked += ident["members"].as_array().unwrap().len();
+        }
+    }
+    assert_eq!(tracked, boxes);
+}
+
+#[test]
 fn eval_rejects_data_without_ids() {
     let dir = tempfile::tempdir().unwrap();
     let model = dir.path().join("m.onnx");

@@ -18,4 +18,5 @@ mod python_client;
 mod shutdown;
 mod sync_order;
 mod tls;
+mod tracking;
 mod unary;

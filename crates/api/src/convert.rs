@@ -59,10 +59,12 @@ pub fn associate_from_pb(r: pb::AssociateRequest) -> Result<(String, types::Asso
     ))
 }
 
-/// A core identity of scene `spec` as its published form (members named by camera).
-pub fn identity_out(spec: &SceneSpec, id: Identity) -> types::IdentityOut {
+/// A core identity of scene `spec` as its published form (members named by camera), with
+/// its track id when the frame was tracked.
+pub fn identity_out(spec: &SceneSpec, id: Identity, track_id: Option<u64>) -> types::IdentityOut {
     types::IdentityOut {
         id: id.id,
+        track_id,
         confidence: id.confidence,
         members: id
             .members
@@ -114,6 +116,7 @@ pub fn result_to_pb(r: &types::FrameResult) -> pb::FrameResult {
             .iter()
             .map(|i| pb::Identity {
                 id: i.id as u32,
+                track_id: i.track_id,
                 confidence: i.confidence,
                 members: i
                     .members

@@ -38,7 +38,12 @@ pub struct Member {
 /// A person seen by one or more cameras in one frame.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct IdentityOut {
+    /// Dense, 0-based within the frame.
     pub id: usize,
+    /// The person's track id: the same across frames and cameras while the scene's tracker
+    /// follows them (`crossview_core::tracking`); absent on unary results (not tracked).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub track_id: Option<u64>,
     pub confidence: f32,
     pub members: Vec<Member>,
 }

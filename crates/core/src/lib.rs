@@ -15,6 +15,7 @@ pub(crate) mod lsa;
 pub mod matching;
 #[cfg(any(test, feature = "testing"))]
 pub mod testing;
+pub mod tracking;
 pub mod types;
 
 use ndarray::Array2;

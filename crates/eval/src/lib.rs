@@ -7,6 +7,7 @@
 //! - [`report`]: the printed table and the JSON report.
 //! - [`parallel`]: frames dealt to worker threads, results back in frame order.
 //! - [`throughput`]: in-process frames/s of the inference pipeline (the `pipeline` bench).
+//! - [`tracking`]: track ids over time scored against the ground-truth ids (IDF1, switches).
 
 pub mod driver;
 pub mod dump;
@@ -15,6 +16,7 @@ pub mod metrics;
 pub mod parallel;
 pub mod report;
 pub mod throughput;
+pub mod tracking;
 
 pub use driver::{EvalRun, evaluate, evaluate_settings, evaluate_settings_on};
 pub use metrics::{Metrics, PairRecord, compute_metrics};

@@ -26,6 +26,7 @@ use tokio::sync::{Notify, broadcast, oneshot};
 
 use crossview_api::types::{FrameResult, SceneDescription};
 use crossview_core::association::AssociationConfig;
+use crossview_core::tracking::{Tracker, TrackerConfig};
 use crossview_core::{Detection, Encoder, Error, Frame, Result, SceneSpec};
 
 use crate::config::Limits;
@@ -122,6 +123,7 @@ impl Scene {
             frame_deadline: limits.frame_deadline,
             close_by: close_by.clone(),
             published: published.clone(),
+            tracker: Tracker::new(TrackerConfig::default()),
         };
         let handle = std::thread::Builder::new()
             .name(format!("encoder-{}", info.spec.name))

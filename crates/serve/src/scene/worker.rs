@@ -11,7 +11,9 @@ use tokio::sync::{broadcast, oneshot};
 use crossview_api::convert::identity_out;
 use crossview_api::types::{FrameResult, IdentityOut};
 use crossview_core::association::{embed_frame, frame_identities};
-use crossview_core::{Encoder, Error, Frame, Result};
+use crossview_core::identity::Identity;
+use crossview_core::tracking::Tracker;
+use crossview_core::{Encoder, Error, Frame, FrameEmbeddings, Result};
 
 use super::{SceneInfo, lock};
 use crate::metrics::Metrics;
@@ -39,6 +41,8 @@ pub(super) struct Worker {
     pub(super) frame_deadline: Duration,
     pub(super) close_by: Arc<Mutex<Option<Instant>>>,
     pub(super) published: Arc<AtomicU64>,
+    /// Track ids for the synchronized frames, in frame order (unary frames are not tracked).
+    pub(super) tracker: Tracker,
 }
 
 impl Worker {
@@ -62,9 +66,11 @@ impl Worker {
                     reply,
                 } => {
                     // The caller counts the error (the service does, once).
-                    let r = self
-                        .associate_in_time(&frame, started)
-                        .map(|ids| self.result(&frame, started, ids));
+                    let r = self.associate_in_time(&frame, started).map(|(ids, _)| {
+                        let spec = &self.info.spec;
+                        let ids = ids.into_iter().map(|id| identity_out(spec, id, None));
+                        self.result(&frame, started, ids.collect())
+                    });
                     self.queued.fetch_sub(1, Ordering::AcqRel);
                     let _ = reply.send(r);
                 }
@@ -73,11 +79,20 @@ impl Worker {
         tracing::debug!(scene = %self.info.spec.name, "encoder worker done");
     }
 
-    /// The published result of a synchronized frame: its identities, or the error (message
-    /// and kind, counted here: no caller sees it) without identities.
+    /// The published result of a synchronized frame: its identities with their track ids, or
+    /// the error (message and kind, counted here: no caller sees it) without identities.
     fn stream_result(&mut self, frame: &Frame, first_seen: Instant) -> FrameResult {
         match self.associate_in_time(frame, first_seen) {
-            Ok(ids) => self.result(frame, first_seen, ids),
+            Ok((ids, embeddings)) => {
+                let tracks = self.tracker.update(frame, &ids, &embeddings);
+                let spec = &self.info.spec;
+                let ids = ids
+                    .into_iter()
+                    .zip(tracks)
+                    .map(|(id, t)| identity_out(spec, id, Some(t)))
+                    .collect();
+                self.result(frame, first_seen, ids)
+            }
             Err(e) => {
                 self.metrics.error(&e);
                 let mut r = self.result(frame, first_seen, Vec::new());
@@ -93,7 +108,7 @@ impl Worker {
         &mut self,
         frame: &Frame,
         first_seen: Instant,
-    ) -> Result<Vec<IdentityOut>> {
+    ) -> Result<(Vec<Identity>, FrameEmbeddings)> {
         self.check_deadline(first_seen)?;
         self.associate(frame)
     }
@@ -123,19 +138,20 @@ impl Worker {
 
     /// Embeds the frame in one encoder call and builds its identities (SPEC §3); a panic in
     /// the method becomes an [`Error::Internal`] instead of taking the scene down.
-    fn associate(&mut self, frame: &Frame) -> Result<Vec<IdentityOut>> {
+    fn associate(&mut self, frame: &Frame) -> Result<(Vec<Identity>, FrameEmbeddings)> {
         let spec = &self.info.spec;
         let t = Instant::now();
         let encoder = self.encoder.as_mut();
         let config = &self.info.association;
         let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
             let embeddings = embed_frame(encoder, spec, frame)?;
-            Ok(frame_identities(frame, &embeddings, config))
+            let identities = frame_identities(frame, &embeddings, config);
+            Ok((identities, embeddings))
         }))
         .unwrap_or_else(|_| Err(Error::internal("association panicked")));
         self.metrics.inference(&spec.name, t.elapsed());
         match outcome {
-            Ok(ids) => Ok(ids.into_iter().map(|id| identity_out(spec, id)).collect()),
+            Ok(done) => Ok(done),
             Err(e) => {
                 tracing::error!(
                     scene = %spec.name,
