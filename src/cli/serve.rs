@@ -1,10 +1,11 @@
-//! `crossview serve`: flags (with `CROSSVIEW_*` environment fallbacks) → [`ServeConfig`], then [`crossview::serve::run`] until Ctrl-C / SIGTERM.
+//! `crossview serve`: flags (with `CROSSVIEW_*` environment fallbacks) → [`ServeConfig`], then [`crossview_serve::run`] until Ctrl-C / SIGTERM.
 use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::Context;
 use clap::Args;
 
+use crossview_core::tracking::TrackerConfig;
 use crossview_serve::{ConnectionLimits, Limits, ModelSpec, ServeConfig, TlsConfig};
 
 /// Serve association over gRPC and HTTP JSON on one port.
@@ -106,6 +107,13 @@ pub struct ServeArgs {
     /// How long shutdown waits for open connections after flushing.
     #[arg(long, env = "CROSSVIEW_SHUTDOWN_GRACE", default_value = "10s", value_parser = parse_duration)]
     pub shutdown_grace: Duration,
+    /// Frames a person's track survives unseen before it is retired (counts frames, not
+    /// time: at 10 frames/s, 5 is half a second; the default suits WILDTRACK's 2 frames/s).
+    #[arg(long, env = "CROSSVIEW_TRACK_MAX_AGE", default_value_t = TrackerConfig::default().max_age)]
+    pub track_max_age: u32,
+    /// Tracker gate, relative to the frame's median distance between identities.
+    #[arg(long, env = "CROSSVIEW_TRACK_GATE", default_value_t = TrackerConfig::default().gate)]
+    pub track_gate: f32,
 }
 
 /// Parses `250ms`, `2s`, `1.5s`, `10m` or a bare number of milliseconds.
@@ -184,6 +192,11 @@ impl ServeArgs {
                 subscriber_stall_timeout: self.subscriber_stall_timeout,
             },
             shutdown_grace: self.shutdown_grace,
+            tracker: TrackerConfig {
+                max_age: self.track_max_age,
+                gate: self.track_gate,
+                ..TrackerConfig::default()
+            },
         })
     }
 }

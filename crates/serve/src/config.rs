@@ -3,6 +3,7 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
+use crossview_core::tracking::TrackerConfig;
 use crossview_core::{Error, Result};
 
 /// A model to serve: scene `name` from ONNX file `path`.
@@ -168,6 +169,8 @@ pub struct ServeConfig {
     pub connections: ConnectionLimits,
     /// How long graceful shutdown waits for open connections after flushing.
     pub shutdown_grace: Duration,
+    /// How each scene links its identities over time into track ids.
+    pub tracker: TrackerConfig,
 }
 
 impl std::fmt::Debug for ServeConfig {
@@ -184,6 +187,7 @@ impl std::fmt::Debug for ServeConfig {
             .field("limits", &self.limits)
             .field("connections", &self.connections)
             .field("shutdown_grace", &self.shutdown_grace)
+            .field("tracker", &self.tracker)
             .finish()
     }
 }
@@ -199,6 +203,7 @@ impl Default for ServeConfig {
             limits: Limits::default(),
             connections: ConnectionLimits::default(),
             shutdown_grace: Duration::from_secs(10),
+            tracker: TrackerConfig::default(),
         }
     }
 }

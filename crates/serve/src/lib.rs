@@ -103,6 +103,7 @@ impl Server {
                 config.sync_timeout,
                 config.max_pending_frames,
                 config.limits,
+                config.tracker.clone(),
                 metrics.clone(),
             )?);
         }
