@@ -5,6 +5,8 @@
 use std::time::{Duration, Instant};
 
 use crossview_testing::*;
+use futures::StreamExt;
+use futures::stream::FuturesUnordered;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
@@ -121,13 +123,32 @@ async fn the_cap_evicts_idle_connections_and_refuses_beyond_busy_ones() {
     for _ in 0..3 * CAP {
         idle.push(connect(&server).await);
     }
-    // The 2 × CAP oldest were evicted. Until they have closed, they still count against the
+    // Each of the 2 × CAP newcomers beyond the cap closed one connection: it evicted the
+    // longest idle, or — when evicted ones had not finished closing yet (a loaded machine)
+    // and the bound on closing connections was reached — it was refused itself. So exactly
+    // 2 × CAP close, not necessarily the oldest. Until they have closed, they still count against the
     // bound on closing connections (2 × CAP open in all), so wait for that, as a client
     // arriving a moment later would: the cap is then full of idle connections again.
-    for s in &mut idle[..2 * CAP] {
-        let (_, took) = until_closed(s).await;
-        assert!(took < CLOSED_WITHIN, "evicted connection held {took:?}");
-    }
+    let t = Instant::now();
+    let mut closing: FuturesUnordered<_> = idle
+        .iter_mut()
+        .map(|s| async move {
+            let mut buf = Vec::new();
+            let _ = s.read_to_end(&mut buf).await;
+        })
+        .collect();
+    let closed = tokio::time::timeout(CLOSED_WITHIN, async {
+        for _ in 0..2 * CAP {
+            closing.next().await;
+        }
+    })
+    .await;
+    drop(closing);
+    assert!(
+        closed.is_ok(),
+        "2 × {CAP} evicted connections did not all close within {CLOSED_WITHIN:?} ({:?})",
+        t.elapsed()
+    );
     let health = || async {
         let r = reqwest::Client::new()
             .get(server.url("/healthz"))
@@ -137,10 +158,12 @@ async fn the_cap_evicts_idle_connections_and_refuses_beyond_busy_ones() {
     };
     assert_eq!(guard("healthz at the cap", health()).await, 200);
     let m = server.metrics().await;
-    assert!(
-        metric(&m, "crossview_connections_evicted_total") >= (2 * CAP) as f64,
-        "{m}"
-    );
+    // The first CAP newcomers always find room by eviction; every one beyond the cap was
+    // evicted or refused.
+    let evicted = metric(&m, "crossview_connections_evicted_total");
+    let refused = metric(&m, "crossview_connections_refused_total");
+    assert!(evicted >= CAP as f64, "{m}");
+    assert!(evicted + refused >= (2 * CAP) as f64, "{m}");
 
     // Busy connections (half-sent bodies) cannot be evicted: an extra one is refused at once.
     let mut busy = Vec::new();
