@@ -206,10 +206,9 @@ impl Tracker {
         let ident = Array2::from_shape_fn((rows.len(), dim), |(r, k)| {
             centroids[rows[r]].as_ref().map_or(0.0, |c| c[k])
         });
-        let predicted = Array2::from_shape_fn((self.tracks.len(), dim), |(t, k)| {
-            let tr = &self.tracks[t];
-            tr.centroid[k] + (tr.unseen + 1) as f32 * tr.velocity[k]
-        });
+        let predicted: Vec<f32> = self.tracks.iter().flat_map(Track::predicted).collect();
+        let predicted = Array2::from_shape_vec((self.tracks.len(), dim), predicted)
+            .expect("every track has the frame's embedding width");
         // All distances at once through the matrix-product kernel.
         let mut cost = euclidean_distances(ident.view(), predicted.view());
         let iou_weight = self.cfg.iou_weight;
