@@ -114,6 +114,10 @@ pub struct ServeArgs {
     /// Tracker gate, relative to the frame's median distance between identities.
     #[arg(long, env = "CROSSVIEW_TRACK_GATE", default_value_t = TrackerConfig::default().gate)]
     pub track_gate: f32,
+    /// Turn tracking off: streamed identities carry no `track_id` (saves the tracker's cost,
+    /// ~0.2 ms per crowded frame).
+    #[arg(long, env = "CROSSVIEW_NO_TRACKING")]
+    pub no_tracking: bool,
 }
 
 /// Parses `250ms`, `2s`, `1.5s`, `10m` or a bare number of milliseconds.
@@ -192,11 +196,11 @@ impl ServeArgs {
                 subscriber_stall_timeout: self.subscriber_stall_timeout,
             },
             shutdown_grace: self.shutdown_grace,
-            tracker: TrackerConfig {
+            tracker: (!self.no_tracking).then(|| TrackerConfig {
                 max_age: self.track_max_age,
                 gate: self.track_gate,
                 ..TrackerConfig::default()
-            },
+            }),
         })
     }
 }

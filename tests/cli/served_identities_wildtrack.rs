@@ -1,7 +1,9 @@
 //! Guarantee: what a client of the server receives is what `crossview eval` scores. The real
 //! server on port 0 with `models/wildtrack.onnx`, the WILDTRACK validation frames pushed over
 //! HTTP camera by camera in shuffled order, the identities read back from SSE and scored as
-//! pairs (SPEC §5): the same counts as the evaluation driver's identity row on those frames.
+//! pairs (SPEC §5): the same counts as the evaluation driver's identity row on those frames,
+//! and the streamed track ids scored as `crossview eval --tracking` scores its own (issue #15:
+//! multi-camera IDF1 ≥ 85 on these frames).
 //! Skipped, with a note, when the WILDTRACK data is not beside the repository.
 
 use std::collections::BTreeMap;
@@ -15,6 +17,8 @@ use crossview_core::identity::Identity;
 use crossview_data::Part;
 use crossview_data::wildtrack::{import_ground_truth, part_bounds};
 use crossview_eval::driver::frame_ids;
+use crossview_core::tracking::TrackerConfig;
+use crossview_eval::tracking::{evaluate_tracking, score_tracks};
 use crossview_eval::{compute_metrics, evaluate};
 use crossview_model::OnnxEncoder;
 use crossview_serve::{ModelSpec, ServeConfig};
@@ -45,6 +49,8 @@ async fn served_identities_score_like_eval_on_wildtrack_validation() {
         "the committed model is calibrated"
     );
     let (expected, _) = evaluate(&mut encoder, &rec, &cfg).unwrap();
+    let expected_tracks =
+        evaluate_tracking(&mut [&mut encoder], &rec, &cfg, &TrackerConfig::default()).unwrap();
 
     let spec = ModelSpec::parse(&format!("wildtrack={}", model.display())).unwrap();
     let server = crossview_testing::start_with(vec![spec], |c: &mut ServeConfig| {
@@ -109,12 +115,20 @@ async fn served_identities_score_like_eval_on_wildtrack_validation() {
     .await;
 
     let mut records = Vec::new();
+    let mut observations = Vec::new();
     for frame in &rec.frames {
         let r = &results[&frame.frame_id];
         assert!(r.complete && r.error.is_none(), "{r:?}");
         let served: Vec<Identity> = r.identities.iter().map(identity_from_out).collect();
         let truth = frame_ids(&rec.scene, frame).unwrap();
         records.extend(pair_records(frame.frame_id, &names, &truth, &served).unwrap());
+        for (out, identity) in r.identities.iter().zip(&served) {
+            let track = out.track_id.expect("streamed identities carry a track id");
+            for &(c, i) in &identity.members {
+                let person = truth[c].as_ref().unwrap()[i];
+                observations.push((c, person, track));
+            }
+        }
     }
     let got = compute_metrics(&records);
     let counts = |m: &crossview_eval::Metrics| {
@@ -131,5 +145,17 @@ async fn served_identities_score_like_eval_on_wildtrack_validation() {
     assert_eq!((got.acc, got.ipaa_100), (expected.acc, expected.ipaa_100));
     // The identities beat the bar of the identity issue on these frames.
     assert!(got.acc >= 0.95 && got.ipaa_100 >= 0.70, "{got:?}");
+
+    // The served track ids: the same as the offline tracker's, and over the issue's bar.
+    let tracks = score_tracks(&names, &observations);
+    let multi = tracks.multi_camera;
+    let want = expected_tracks.multi_camera;
+    assert_eq!(
+        (multi.boxes, multi.people, multi.id_switches),
+        (want.boxes, want.people, want.id_switches),
+        "{tracks:?} vs {expected_tracks:?}"
+    );
+    assert!((multi.idf1 - want.idf1).abs() < 1e-9, "{tracks:?}");
+    assert!(multi.idf1 >= 0.85, "{tracks:?}");
     server.shutdown().await.unwrap();
 }

@@ -1,6 +1,7 @@
 //! Track ids in the stream: every identity of a synchronized frame carries a `track_id`, the
 //! same people standing still keep theirs from frame to frame (over gRPC and in the JSON of
-//! the SSE stream), a frame-id gap does not reset them, and unary results carry none.
+//! the SSE stream), a frame-id gap does not reset them, and unary results carry none, nor
+//! does any result with tracking off.
 
 use crossview_api::pb;
 use crossview_testing::*;
@@ -119,5 +120,25 @@ async fn people_standing_still_keep_their_track_ids() {
         .into_inner();
     assert!(!r.identities.is_empty());
     assert!(r.identities.iter().all(|i| i.track_id.is_none()));
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tracking_off_streams_identities_without_track_ids() {
+    let server = start(|c| c.tracker = None).await;
+    let mut sub = server.grpc().await;
+    let mut results = sub
+        .subscribe(pb::SubscribeRequest {
+            scene: "lab".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    for f in 1..=2 {
+        push_still_frame(&server, f).await;
+        let r = guard("result", results.next()).await.unwrap().unwrap();
+        check_identities(&r, &[4, 4, 4]);
+        assert!(r.identities.iter().all(|i| i.track_id.is_none()), "{r:?}");
+    }
     server.shutdown().await.unwrap();
 }

@@ -49,8 +49,8 @@ pub struct TrackingReport {
     pub per_camera: Vec<(String, TrackScores)>,
 }
 
-/// One scored box: camera, ground-truth id, track id.
-type Observation = (usize, u64, u64);
+/// One scored box: camera index, ground-truth id, track id.
+pub type Observation = (usize, u64, u64);
 
 /// Associates every frame of `recording` (ids required) with `cfg`, tracks its identities
 /// with a fresh [`Tracker`] in frame order, and scores the track ids. Frames are embedded and
@@ -87,22 +87,29 @@ pub fn evaluate_tracking(
             Ok(())
         },
     )?;
-    let per_camera: Vec<(String, TrackScores)> = scene
-        .cameras
+    let cameras: Vec<String> = scene.cameras.iter().map(|c| c.name.clone()).collect();
+    Ok(score_tracks(&cameras, &obs))
+}
+
+/// Scores track ids given box by box, in frame order: `(camera index, ground-truth id, track
+/// id)` for each box, `cameras` the scene's camera names. What [`evaluate_tracking`] reports
+/// from its own tracker, for track ids that came from elsewhere (a server's stream).
+pub fn score_tracks(cameras: &[String], obs: &[Observation]) -> TrackingReport {
+    let per_camera: Vec<(String, TrackScores)> = cameras
         .iter()
         .enumerate()
-        .map(|(c, cam)| {
+        .map(|(c, name)| {
             let mine: Vec<Observation> = obs.iter().copied().filter(|o| o.0 == c).collect();
-            (cam.name.clone(), scores(&mine))
+            (name.clone(), scores(&mine))
         })
         .collect();
-    let mut multi_camera = scores(&obs);
+    let mut multi_camera = scores(obs);
     multi_camera.id_switches = per_camera.iter().map(|(_, s)| s.id_switches).sum();
     multi_camera.mota = mota(multi_camera.id_switches, multi_camera.boxes);
-    Ok(TrackingReport {
+    TrackingReport {
         multi_camera,
         per_camera,
-    })
+    }
 }
 
 /// The scores of `obs` (in frame order).

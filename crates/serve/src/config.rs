@@ -169,8 +169,9 @@ pub struct ServeConfig {
     pub connections: ConnectionLimits,
     /// How long graceful shutdown waits for open connections after flushing.
     pub shutdown_grace: Duration,
-    /// How each scene links its identities over time into track ids.
-    pub tracker: TrackerConfig,
+    /// How each scene links its identities over time into track ids; `None` tracks nothing
+    /// (streamed identities then carry no `track_id`).
+    pub tracker: Option<TrackerConfig>,
 }
 
 impl std::fmt::Debug for ServeConfig {
@@ -203,7 +204,7 @@ impl Default for ServeConfig {
             limits: Limits::default(),
             connections: ConnectionLimits::default(),
             shutdown_grace: Duration::from_secs(10),
-            tracker: TrackerConfig::default(),
+            tracker: Some(TrackerConfig::default()),
         }
     }
 }

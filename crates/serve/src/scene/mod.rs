@@ -97,7 +97,7 @@ impl Scene {
         sync_timeout: Duration,
         max_pending: usize,
         limits: Limits,
-        tracker: TrackerConfig,
+        tracker: Option<TrackerConfig>,
         metrics: Metrics,
     ) -> Result<Arc<Scene>> {
         let n = info.spec.cameras.len();
@@ -124,7 +124,7 @@ impl Scene {
             frame_deadline: limits.frame_deadline,
             close_by: close_by.clone(),
             published: published.clone(),
-            tracker: Tracker::new(tracker),
+            tracker: tracker.map(Tracker::new),
         };
         let handle = std::thread::Builder::new()
             .name(format!("encoder-{}", info.spec.name))

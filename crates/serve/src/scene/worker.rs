@@ -41,8 +41,9 @@ pub(super) struct Worker {
     pub(super) frame_deadline: Duration,
     pub(super) close_by: Arc<Mutex<Option<Instant>>>,
     pub(super) published: Arc<AtomicU64>,
-    /// Track ids for the synchronized frames, in frame order (unary frames are not tracked).
-    pub(super) tracker: Tracker,
+    /// Track ids for the synchronized frames, in frame order (unary frames are not tracked;
+    /// `None`: tracking is off).
+    pub(super) tracker: Option<Tracker>,
 }
 
 impl Worker {
@@ -84,12 +85,15 @@ impl Worker {
     fn stream_result(&mut self, frame: &Frame, first_seen: Instant) -> FrameResult {
         match self.associate_in_time(frame, first_seen) {
             Ok((ids, embeddings)) => {
-                let tracks = self.tracker.update(frame, &ids, &embeddings);
+                let tracks = match &mut self.tracker {
+                    Some(tracker) => tracker.update(frame, &ids, &embeddings).into_iter().map(Some).collect(),
+                    None => vec![None; ids.len()],
+                };
                 let spec = &self.info.spec;
                 let ids = ids
                     .into_iter()
                     .zip(tracks)
-                    .map(|(id, t)| identity_out(spec, id, Some(t)))
+                    .map(|(id, t)| identity_out(spec, id, t))
                     .collect();
                 self.result(frame, first_seen, ids)
             }
