@@ -86,6 +86,10 @@ pub struct EvalArgs {
     /// Weight of the image cue (box overlap with the track's last boxes, per camera).
     #[arg(long, default_value_t = TrackerConfig::default().iou_weight)]
     pub track_iou: f32,
+    /// How fast a track's box velocity in each camera follows the box's motion (0 = the
+    /// last box is the prediction).
+    #[arg(long, default_value_t = TrackerConfig::default().box_velocity_weight)]
+    pub track_box_velocity: f32,
 }
 
 /// Arguments of `crossview associate`.
@@ -301,6 +305,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
                 max_age: args.track_max_age,
                 velocity_weight: args.track_velocity,
                 iou_weight: args.track_iou,
+                box_velocity_weight: args.track_box_velocity,
                 ..TrackerConfig::default()
             };
             let cfg = base.with_mode(Mode::Identities, r.threshold);

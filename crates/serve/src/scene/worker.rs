@@ -86,7 +86,11 @@ impl Worker {
         match self.associate_in_time(frame, first_seen) {
             Ok((ids, embeddings)) => {
                 let tracks = match &mut self.tracker {
-                    Some(tracker) => tracker.update(frame, &ids, &embeddings).into_iter().map(Some).collect(),
+                    Some(tracker) => tracker
+                        .update(frame, &ids, &embeddings)
+                        .into_iter()
+                        .map(Some)
+                        .collect(),
                     None => vec![None; ids.len()],
                 };
                 let spec = &self.info.spec;
