@@ -6,20 +6,29 @@ use anyhow::Context;
 use clap::Args;
 
 use crossview_core::tracking::TrackerConfig;
+use crossview_serve::config::SceneDecl;
 use crossview_serve::{ConnectionLimits, Limits, ModelSpec, ServeConfig, TlsConfig};
 
 /// Serve association over gRPC and HTTP JSON on one port.
 #[derive(Debug, Args)]
 pub struct ServeArgs {
     /// A model to serve, `[NAME=]path.onnx` (repeatable; the scene name defaults to the file
-    /// stem; cameras come from the model metadata).
+    /// stem; cameras come from the model metadata). The file is re-read on SIGHUP (and
+    /// `POST /v1/admin/reload`) and swapped in live when it changed; for a scene declared with
+    /// --scene it may not exist yet.
     #[arg(
         long = "model",
         env = "CROSSVIEW_MODELS",
         value_delimiter = ',',
-        required = true
+        required_unless_present = "scenes"
     )]
     pub models: Vec<String>,
+    /// A scene declared by its cameras before any model exists: `NAME=cam1:1920x1080,cam2:...`
+    /// or a JSON file holding a recording's scene header (repeatable; `;` separates several in
+    /// the environment). Its batches are accepted (and recorded) and its results say
+    /// `"status": "no_model"` until a model is loaded.
+    #[arg(long = "scene", env = "CROSSVIEW_SCENES", value_delimiter = ';')]
+    pub scenes: Vec<String>,
     /// Address to listen on (gRPC and HTTP share it).
     #[arg(long, env = "CROSSVIEW_LISTEN", default_value = "0.0.0.0:8080")]
     pub listen: String,
@@ -150,6 +159,11 @@ impl ServeArgs {
             .iter()
             .map(|m| ModelSpec::parse(m))
             .collect::<crossview_core::Result<Vec<_>>>()?;
+        let scenes = self
+            .scenes
+            .iter()
+            .map(|s| SceneDecl::parse(s))
+            .collect::<crossview_core::Result<Vec<_>>>()?;
         let mut api_keys = self.api_keys.clone();
         if let Some(p) = &self.api_key_file {
             let text = std::fs::read_to_string(p)
@@ -170,6 +184,8 @@ impl ServeArgs {
         };
         Ok(ServeConfig {
             models,
+            scenes,
+            reload_on_sighup: true,
             sync_timeout: self.sync_timeout,
             max_pending_frames: self.max_pending_frames,
             api_keys,

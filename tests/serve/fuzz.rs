@@ -34,7 +34,9 @@ fn env() -> &'static Env {
             ..ServeConfig::default()
         };
         let encoder = OnnxEncoder::load(&path).unwrap();
-        let info = registry::scene_info("lab", encoder.metadata(), &config.limits).unwrap();
+        let version = encoder.metadata().version.clone();
+        let info =
+            registry::scene_info("lab", encoder.metadata(), version, &config.limits).unwrap();
         let scenes: Vec<(_, Box<dyn Encoder>)> = vec![(info, Box::new(encoder))];
         let server = Server::from_scenes(config, scenes).unwrap();
         Env {

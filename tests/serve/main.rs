@@ -12,6 +12,7 @@ mod fuzz;
 mod grpc_push_stream;
 mod late_duplicate;
 mod metrics_labels;
+mod model_swap;
 mod ndjson_bounds;
 mod partial;
 mod python_client;

@@ -132,6 +132,12 @@ pub fn result_to_pb(r: &types::FrameResult) -> pb::FrameResult {
         latency_ms: r.latency_ms,
         error: r.error.clone().unwrap_or_default(),
         error_kind: r.error_kind.clone().unwrap_or_default(),
+        status: match r.status {
+            types::ResultStatus::Associated => pb::ResultStatus::Associated,
+            types::ResultStatus::NoModel => pb::ResultStatus::NoModel,
+            types::ResultStatus::Failed => pb::ResultStatus::Failed,
+        } as i32,
+        model_version: r.model_version.clone().unwrap_or_default(),
     }
 }
 
@@ -150,7 +156,7 @@ pub fn scene_to_pb(s: types::SceneDescription) -> pb::Scene {
             .collect(),
         threshold: s.threshold,
         alpha: s.alpha,
-        model_version: s.model_version,
+        model_version: s.model_version.unwrap_or_default(),
         appearance_length: s.appearance_length.unwrap_or(0) as u32,
         sync_timeout_ms: s.sync_timeout_ms,
     }

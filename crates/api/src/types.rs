@@ -67,6 +67,28 @@ pub struct FrameResult {
     /// `crossview_errors_total`), set with `error`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub error_kind: Option<String>,
+    /// What became of the frame: associated, not associated because the scene has no model
+    /// yet, or failed (see `error`).
+    #[serde(default)]
+    pub status: ResultStatus,
+    /// The version of the model that associated the frame (its `crossview.version` and the
+    /// file's content hash, `VERSION@HASH`); absent while the scene has no model.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model_version: Option<String>,
+}
+
+/// What became of a published frame.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ResultStatus {
+    /// Associated by the scene's model: `identities` holds the result.
+    #[default]
+    Associated,
+    /// Accepted and published, not associated: the scene was declared by its cameras and has
+    /// no model yet (see `crossview serve --scene`).
+    NoModel,
+    /// Association failed; `error` says why.
+    Failed,
 }
 
 /// The acknowledgement of an accepted batch.
@@ -85,7 +107,9 @@ pub struct SceneDescription {
     pub cameras: Vec<CameraSpec>,
     pub threshold: f32,
     pub alpha: f32,
-    pub model_version: String,
+    /// The serving model's version (`VERSION@HASH`); absent while the scene has no model.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model_version: Option<String>,
     /// Appearance vector length fixed by the first accepted batch with vectors; `None` while
     /// unknown.
     pub appearance_length: Option<usize>,

@@ -106,6 +106,10 @@ pub enum Error {
     /// Training could not run on the given data or configuration.
     #[error("training: {0}")]
     Training(String),
+    /// The scene was declared by its cameras and has no model yet: batches are accepted and
+    /// published unassociated, an `associate` call cannot be answered.
+    #[error("scene '{0}' has no model yet (declared by its cameras; load one and reload)")]
+    NoModel(String),
 }
 
 impl Error {
@@ -191,6 +195,7 @@ impl Error {
             Error::Unauthenticated(_) => "unauthenticated",
             Error::Unavailable(_) => "unavailable",
             Error::Training(_) => "training",
+            Error::NoModel(_) => "no_model",
         }
     }
 }

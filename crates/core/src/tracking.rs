@@ -153,6 +153,13 @@ impl Tracker {
         }
     }
 
+    /// Ends every track (the embedding space changed: a new model); ids go on counting from
+    /// where they were, so no id is ever reused.
+    pub fn end_tracks(&mut self) {
+        self.tracks.clear();
+        self.scale = f32::INFINITY;
+    }
+
     /// Live tracks (matched within the last `max_age` frames).
     pub fn live_tracks(&self) -> usize {
         self.tracks.len()

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use crossview_core::tracking::TrackerConfig;
-use crossview_core::{Error, Result};
+use crossview_core::{CameraSpec, Error, Result, SceneSpec};
 
 /// A model to serve: scene `name` from ONNX file `path`.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -35,6 +35,81 @@ impl ModelSpec {
         validate_scene_name(&name)?;
         Ok(ModelSpec { name, path })
     }
+}
+
+/// A scene declared by its cameras alone (no model yet): batches are accepted, recorded and
+/// published unassociated until a model for it is loaded (`--model NAME=path` naming a file
+/// that appears later, picked up on reload).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SceneDecl {
+    /// Name and cameras (names and image sizes, in camera-index order).
+    pub spec: SceneSpec,
+}
+
+impl SceneDecl {
+    /// Parses `NAME=cam1:1920x1080,cam2:1280x720,...`, or the path of a JSON file holding a
+    /// SPEC §7 scene header `{"scene": {"name", "cameras": [{"name", "width", "height"}]}}`
+    /// (a recording's first line is one).
+    pub fn parse(s: &str) -> Result<Self> {
+        let spec = match s.split_once('=') {
+            Some((name, cams)) if !name.contains('/') => {
+                let cameras = cams
+                    .split(',')
+                    .map(|c| parse_camera(c.trim()))
+                    .collect::<Result<Vec<_>>>()?;
+                SceneSpec {
+                    name: name.to_string(),
+                    cameras,
+                }
+            }
+            _ => {
+                let text = std::fs::read_to_string(s).map_err(|e| Error::Io {
+                    path: s.into(),
+                    source: e,
+                })?;
+                let first = text.lines().next().unwrap_or("");
+                #[derive(serde::Deserialize)]
+                struct Header {
+                    scene: SceneSpec,
+                }
+                let h: Header = serde_json::from_str(first).map_err(|e| {
+                    Error::invalid("--scene", format!("{s}: not a scene header: {e}"))
+                })?;
+                h.scene
+            }
+        };
+        validate_scene_name(&spec.name)?;
+        if spec.cameras.is_empty() {
+            return Err(Error::invalid("--scene", format!("'{s}' names no camera")));
+        }
+        let mut seen = std::collections::BTreeSet::new();
+        for c in &spec.cameras {
+            if !seen.insert(c.name.as_str()) {
+                return Err(Error::invalid(
+                    "--scene",
+                    format!("camera '{}' appears twice", c.name),
+                ));
+            }
+        }
+        Ok(SceneDecl { spec })
+    }
+}
+
+/// `name:WIDTHxHEIGHT`.
+fn parse_camera(s: &str) -> Result<CameraSpec> {
+    let bad = || Error::invalid("--scene", format!("'{s}' is not CAMERA:WIDTHxHEIGHT"));
+    let (name, size) = s.rsplit_once(':').ok_or_else(bad)?;
+    let (w, h) = size.split_once('x').ok_or_else(bad)?;
+    let (width, height): (u32, u32) =
+        (w.parse().map_err(|_| bad())?, h.parse().map_err(|_| bad())?);
+    if name.is_empty() || width == 0 || height == 0 || width > 100_000 || height > 100_000 {
+        return Err(bad());
+    }
+    Ok(CameraSpec {
+        name: name.to_string(),
+        width,
+        height,
+    })
 }
 
 /// Scene names travel in URL paths: keep them to `[A-Za-z0-9._-]`, 1..=64 characters.
@@ -155,6 +230,9 @@ pub struct TlsConfig {
 pub struct ServeConfig {
     /// Models to load, one scene each.
     pub models: Vec<ModelSpec>,
+    /// Scenes declared by their cameras (no model yet). A model of `models` with the same
+    /// name may name a file that does not exist yet: it is loaded on reload.
+    pub scenes: Vec<SceneDecl>,
     /// How long a frame waits for missing cameras before it leaves as partial.
     pub sync_timeout: Duration,
     /// Pending frames per scene beyond which the oldest leaves as partial.
@@ -169,6 +247,9 @@ pub struct ServeConfig {
     pub connections: ConnectionLimits,
     /// How long graceful shutdown waits for open connections after flushing.
     pub shutdown_grace: Duration,
+    /// Re-read every scene's model file on `SIGHUP` (the binary sets it; tests in one
+    /// process use the admin route instead).
+    pub reload_on_sighup: bool,
     /// How each scene links its identities over time into track ids; `None` tracks nothing
     /// (streamed identities then carry no `track_id`).
     pub tracker: Option<TrackerConfig>,
@@ -178,6 +259,8 @@ impl std::fmt::Debug for ServeConfig {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("ServeConfig")
             .field("models", &self.models)
+            .field("scenes", &self.scenes)
+            .field("reload_on_sighup", &self.reload_on_sighup)
             .field("sync_timeout", &self.sync_timeout)
             .field("max_pending_frames", &self.max_pending_frames)
             .field(
@@ -197,6 +280,8 @@ impl Default for ServeConfig {
     fn default() -> Self {
         ServeConfig {
             models: Vec::new(),
+            scenes: Vec::new(),
+            reload_on_sighup: false,
             sync_timeout: Duration::from_millis(200),
             max_pending_frames: 64,
             api_keys: Vec::new(),

@@ -19,7 +19,7 @@ pub(crate) fn status(e: Error) -> Status {
         let code = match &e {
             Error::InvalidArgument { .. } | Error::Format { .. } => Code::InvalidArgument,
             Error::UnknownScene(_) | Error::UnknownCamera { .. } => Code::NotFound,
-            Error::LateBatch { .. } => Code::FailedPrecondition,
+            Error::LateBatch { .. } | Error::NoModel(_) => Code::FailedPrecondition,
             Error::DuplicateBatch { .. } => Code::AlreadyExists,
             Error::FrameOutOfRange { .. } => Code::OutOfRange,
             Error::ResourceExhausted(_)

@@ -25,7 +25,9 @@ pub(crate) fn status_of(e: &Error) -> StatusCode {
             StatusCode::UNPROCESSABLE_ENTITY
         }
         Error::UnknownScene(_) | Error::UnknownCamera { .. } => StatusCode::NOT_FOUND,
-        Error::LateBatch { .. } | Error::DuplicateBatch { .. } => StatusCode::CONFLICT,
+        Error::LateBatch { .. } | Error::DuplicateBatch { .. } | Error::NoModel(_) => {
+            StatusCode::CONFLICT
+        }
         Error::ResourceExhausted(_) | Error::DeadlineExceeded(_) | Error::SubscriberStalled(_) => {
             StatusCode::TOO_MANY_REQUESTS
         }
@@ -125,6 +127,12 @@ async fn metrics(State(svc): State<Arc<Service>>) -> Response {
 
 async fn list_scenes(State(svc): State<Arc<Service>>) -> Response {
     Json(serde_json::json!({ "scenes": svc.scenes() })).into_response()
+}
+
+/// `POST /v1/admin/reload`: re-reads every scene's model file (as `SIGHUP` does) and answers
+/// with one outcome per file, `{"reloads": [{"scene", "outcome", "version", "error"}]}`.
+async fn reload(State(svc): State<Arc<Service>>) -> Response {
+    Json(serde_json::json!({ "reloads": svc.reload().await })).into_response()
 }
 
 async fn get_scene(
@@ -348,6 +356,7 @@ pub(crate) fn router(svc: Arc<Service>, max_body: usize) -> Router {
         .route("/v1/scenes/{scene}/associate", post(associate))
         .route("/v1/scenes/{scene}/batches", post(push_batch))
         .route("/v1/scenes/{scene}/events", get(events))
+        .route("/v1/admin/reload", post(reload))
         .layer(DefaultBodyLimit::max(max_body))
         .with_state(svc)
 }

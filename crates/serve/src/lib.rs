@@ -20,6 +20,7 @@ pub mod http;
 pub mod metrics;
 pub mod push;
 pub mod registry;
+pub mod reload;
 pub mod scene;
 pub mod service;
 pub mod sync;
@@ -72,34 +73,70 @@ pub struct Server {
 }
 
 impl Server {
-    /// Loads every model of `config` (blocking: ONNX Runtime sessions) and starts its scenes.
+    /// Loads every model of `config` (blocking: ONNX Runtime sessions) and starts its scenes
+    /// and its declared ones. A model of a declared scene whose file does not exist yet is
+    /// loaded on the first reload that finds it.
     pub fn load(config: ServeConfig) -> Result<Self> {
         let mut scenes = Vec::new();
         for m in &config.models {
+            let declared = config.scenes.iter().any(|d| d.spec.name == m.name);
+            if declared && !m.path.exists() {
+                tracing::info!(scene = %m.name, path = %m.path.display(), "no model file yet; the scene starts without one");
+                continue;
+            }
             scenes.push(registry::load_model(m, &config.limits)?);
         }
         Self::from_scenes(config, scenes)
     }
 
-    /// Starts a server over already loaded encoders (tests, fuzzing, embedding).
+    /// Starts a server over already loaded encoders (tests, fuzzing, embedding), plus the
+    /// scenes `config` declares by their cameras (a loaded model of the same name must fit
+    /// the declared cameras).
     pub fn from_scenes(
         config: ServeConfig,
         scenes: Vec<(SceneInfo, Box<dyn Encoder>)>,
     ) -> Result<Self> {
         let metrics = metrics::Metrics::new();
-        let mut started = Vec::new();
-        let mut names = std::collections::BTreeSet::new();
+        let mut models: std::collections::BTreeMap<String, (SceneInfo, Box<dyn Encoder>)> =
+            Default::default();
         for (info, encoder) in scenes {
-            if !names.insert(info.spec.name.clone()) {
+            let name = info.spec.name.clone();
+            if models.insert(name.clone(), (info, encoder)).is_some() {
                 return Err(Error::invalid(
                     "--model",
-                    format!("scene '{}' given twice", info.spec.name),
+                    format!("scene '{name}' given twice"),
                 ));
             }
-            tracing::info!(scene = %info.spec.name, cameras = info.spec.cameras.len(), version = %info.version, "scene loaded");
+        }
+        let mut specs: Vec<crossview_core::SceneSpec> = Vec::new();
+        for d in &config.scenes {
+            if specs.iter().any(|s| s.name == d.spec.name) {
+                return Err(Error::invalid(
+                    "--scene",
+                    format!("scene '{}' declared twice", d.spec.name),
+                ));
+            }
+            specs.push(d.spec.clone());
+        }
+        for (name, (info, _)) in &models {
+            if !specs.iter().any(|s| &s.name == name) {
+                specs.push(info.spec.clone());
+            }
+        }
+        let mut started = Vec::new();
+        for spec in specs {
+            let model = models.remove(&spec.name);
+            match &model {
+                Some((info, _)) => {
+                    tracing::info!(scene = %spec.name, cameras = spec.cameras.len(), version = %info.version, "scene loaded")
+                }
+                None => {
+                    tracing::info!(scene = %spec.name, cameras = spec.cameras.len(), "scene declared without a model: frames are published unassociated")
+                }
+            }
             started.push(Scene::start(
-                info,
-                encoder,
+                spec,
+                model,
                 config.sync_timeout,
                 config.max_pending_frames,
                 config.limits,
@@ -107,10 +144,12 @@ impl Server {
                 metrics.clone(),
             )?);
         }
+        let reloader = reload::Reloader::new(config.models.clone(), config.limits);
         Ok(Server {
             service: Arc::new(
                 Service::new(started, metrics)
-                    .with_stall_timeout(config.connections.subscriber_stall_timeout),
+                    .with_stall_timeout(config.connections.subscriber_stall_timeout)
+                    .with_reloader(reloader),
             ),
             config,
         })
@@ -140,6 +179,10 @@ impl Server {
         tracing::info!(?addr, tls = tls.is_some(), "serving gRPC + HTTP");
         for scene in self.service.scene_list() {
             spawn_timer(scene, self.service.shutting_down());
+        }
+        #[cfg(unix)]
+        if self.config.reload_on_sighup {
+            reload::spawn_on_sighup(self.service.clone())?;
         }
         let limits = self.config.connections;
         let connections = conn::Connections::new(limits, self.service.metrics().clone());

@@ -100,6 +100,20 @@ impl Metrics {
         self.inc("crossview_batches_total", &[("scene", scene)]);
     }
 
+    /// One frame published unassociated: its scene has no model yet.
+    pub fn unassociated(&self, scene: &str) {
+        self.inc("crossview_frames_unassociated_total", &[("scene", scene)]);
+    }
+
+    /// One model reload of `scene` with its outcome (`swapped`, `unchanged`, `missing`,
+    /// `refused`).
+    pub fn model_reload(&self, scene: &str, outcome: &str) {
+        self.inc(
+            "crossview_model_reloads_total",
+            &[("scene", scene), ("outcome", outcome)],
+        );
+    }
+
     /// One late batch (its frame was already emitted).
     pub fn late(&self, scene: &str) {
         self.inc("crossview_late_batches_total", &[("scene", scene)]);

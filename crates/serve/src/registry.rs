@@ -1,5 +1,10 @@
 //! Scene registry: loads SPEC §8 model files into scenes (name, cameras from the metadata,
-//! threshold, alpha, version) and their encoders.
+//! threshold, alpha, version) and their encoders, and checks that a replacement model fits
+//! the scene it is meant for.
+use std::path::Path;
+
+use sha2::{Digest, Sha256};
+
 use super::config::{Limits, ModelSpec};
 use super::scene::SceneInfo;
 use crossview_core::Encoder;
@@ -7,8 +12,14 @@ use crossview_core::SceneSpec;
 use crossview_core::{Error, Result};
 use crossview_model::{ModelMetadata, OnnxEncoder};
 
-/// The scene description a model's metadata defines, checked against `limits`.
-pub fn scene_info(name: &str, meta: &ModelMetadata, limits: &Limits) -> Result<SceneInfo> {
+/// The scene description a model's metadata defines, checked against `limits`; `version` is
+/// what results will name ([`model_version`]).
+pub fn scene_info(
+    name: &str,
+    meta: &ModelMetadata,
+    version: String,
+    limits: &Limits,
+) -> Result<SceneInfo> {
     if meta.cameras.is_empty() || meta.cameras.len() > limits.max_cameras {
         return Err(Error::model(
             name,
@@ -25,8 +36,17 @@ pub fn scene_info(name: &str, meta: &ModelMetadata, limits: &Limits) -> Result<S
             cameras: meta.cameras.clone(),
         },
         association: meta.association_config(),
-        version: meta.version.clone(),
+        version,
     })
+}
+
+/// The version a served model goes by: its `crossview.version` and the first 12 hex digits
+/// of the SHA-256 of the file, `VERSION@HASH`, so two different files never share one (a
+/// retrained model keeps the crate's version string but not its bytes).
+pub fn model_version(meta_version: &str, bytes: &[u8]) -> String {
+    let digest = Sha256::digest(bytes);
+    let hex: String = digest.iter().take(6).map(|b| format!("{b:02x}")).collect();
+    format!("{meta_version}@{hex}")
 }
 
 /// Loads one model file (blocking: creates its ONNX Runtime session) into its scene
@@ -35,7 +55,39 @@ pub(crate) fn load_model(
     spec: &ModelSpec,
     limits: &Limits,
 ) -> Result<(SceneInfo, Box<dyn Encoder>)> {
+    let bytes = read(&spec.path)?;
     let encoder = OnnxEncoder::load(&spec.path)?;
-    let info = scene_info(&spec.name, encoder.metadata(), limits)?;
+    let version = model_version(&encoder.metadata().version, &bytes);
+    let info = scene_info(&spec.name, encoder.metadata(), version, limits)?;
     Ok((info, Box::new(encoder)))
+}
+
+fn read(path: &Path) -> Result<Vec<u8>> {
+    std::fs::read(path).map_err(|e| Error::Io {
+        path: path.to_path_buf(),
+        source: e,
+    })
+}
+
+/// Refuses a model for `scene` whose cameras (names, order or image sizes) are not the
+/// scene's: its camera indices and box normalisation would not mean the same.
+pub(crate) fn check_fits(scene: &SceneSpec, new: &SceneInfo) -> Result<()> {
+    if new.spec.cameras == scene.cameras {
+        return Ok(());
+    }
+    let describe = |s: &SceneSpec| {
+        s.cameras
+            .iter()
+            .map(|c| format!("{}:{}x{}", c.name, c.width, c.height))
+            .collect::<Vec<_>>()
+            .join(",")
+    };
+    Err(Error::model(
+        &scene.name,
+        format!(
+            "the model is for cameras {} but the scene has {}",
+            describe(&new.spec),
+            describe(scene)
+        ),
+    ))
 }

@@ -13,6 +13,7 @@ use tokio_stream::wrappers::errors::BroadcastStreamRecvError;
 
 use super::conn::ConnHandle;
 use super::metrics::Metrics;
+use super::reload::{ReloadOutcome, Reloader};
 use super::scene::Scene;
 use crossview_api::types::{AssociateRequest, BatchAck, FrameResult, SceneDescription};
 use crossview_core::Batch;
@@ -31,6 +32,7 @@ pub struct Service {
     ready: AtomicBool,
     shutdown: watch::Sender<bool>,
     stall_timeout: Option<Duration>,
+    reloader: Option<Reloader>,
 }
 
 impl Service {
@@ -46,6 +48,22 @@ impl Service {
             ready: AtomicBool::new(true),
             shutdown,
             stall_timeout: None,
+            reloader: None,
+        }
+    }
+
+    /// Reloads these model files on [`Self::reload`].
+    pub(crate) fn with_reloader(mut self, reloader: Reloader) -> Self {
+        self.reloader = Some(reloader);
+        self
+    }
+
+    /// Re-reads every scene's model file and swaps in the ones that changed (see
+    /// [`crate::reload`]); one outcome per model file.
+    pub async fn reload(&self) -> Vec<ReloadOutcome> {
+        match &self.reloader {
+            Some(r) => r.reload(self).await,
+            None => Vec::new(),
         }
     }
 

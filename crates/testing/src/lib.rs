@@ -54,14 +54,20 @@ pub fn cameras() -> Vec<CameraSpec> {
 /// Exports a small random encoder for [`cameras`] to `dir/<stem>.onnx` with the project's
 /// exporter and returns its path.
 pub fn export_model(dir: &Path, stem: &str) -> PathBuf {
+    export_model_with(dir, stem, 11, cameras())
+}
+
+/// Like [`export_model`], with weights from `seed` for the scene `cameras` (another seed:
+/// another file, another version).
+pub fn export_model_with(dir: &Path, stem: &str, seed: u64, cameras: Vec<CameraSpec>) -> PathBuf {
     let config = EncoderConfig {
         fourier_features: 8,
         camera_dim: 16,
         width: 48,
         blocks: 2,
     };
-    let weights = EncoderWeights::random(3, config, 11).expect("random weights");
-    let mut meta = ModelMetadata::new(cameras());
+    let weights = EncoderWeights::random(cameras.len(), config, seed).expect("random weights");
+    let mut meta = ModelMetadata::new(cameras);
     meta.threshold = 0.1;
     meta.version = "test-1".into();
     let path = dir.join(format!("{stem}.onnx"));

@@ -37,9 +37,10 @@ mod admission;
 mod validate;
 mod worker;
 
+pub(crate) use worker::Model;
 use worker::{Job, Worker};
 
-/// Static facts about a scene (from its model file).
+/// What a model file says about its scene: name and cameras, association settings, version.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SceneInfo {
     /// Name and cameras.
@@ -58,7 +59,9 @@ struct Intake {
 
 /// A live scene (see the module docs).
 pub struct Scene {
-    info: SceneInfo,
+    spec: SceneSpec,
+    /// The model serving the scene as of the last applied swap (`None`: no model yet).
+    serving: Arc<Mutex<Option<SceneInfo>>>,
     limits: Limits,
     sync_timeout: Duration,
     metrics: Metrics,
@@ -81,7 +84,10 @@ pub struct Scene {
 
 impl std::fmt::Debug for Scene {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Scene").field("info", &self.info).finish()
+        f.debug_struct("Scene")
+            .field("spec", &self.spec)
+            .field("serving", &*lock(&self.serving))
+            .finish()
     }
 }
 
@@ -90,34 +96,44 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl Scene {
-    /// Starts a scene: its worker thread takes ownership of `encoder`.
+    /// Starts scene `spec`: its worker thread takes ownership of the model (`None`: a scene
+    /// declared by its cameras, published unassociated until a model is swapped in).
     pub fn start(
-        info: SceneInfo,
-        encoder: Box<dyn Encoder>,
+        spec: SceneSpec,
+        model: Option<(SceneInfo, Box<dyn Encoder>)>,
         sync_timeout: Duration,
         max_pending: usize,
         limits: Limits,
         tracker: Option<TrackerConfig>,
         metrics: Metrics,
     ) -> Result<Arc<Scene>> {
-        let n = info.spec.cameras.len();
+        let n = spec.cameras.len();
         if n == 0 || n > limits.max_cameras {
             return Err(Error::invalid(
                 "cameras",
                 format!(
                     "scene '{}' has {n} cameras; 1..={} are supported",
-                    info.spec.name, limits.max_cameras
+                    spec.name, limits.max_cameras
                 ),
             ));
         }
+        let model = match model {
+            Some((info, encoder)) => {
+                crate::registry::check_fits(&spec, &info)?;
+                Some(Model { info, encoder })
+            }
+            None => None,
+        };
+        let serving = Arc::new(Mutex::new(model.as_ref().map(|m| m.info.clone())));
         let (tx, rx) = std::sync::mpsc::channel::<Job>();
         let (results, _) = broadcast::channel(limits.subscriber_buffer.max(1));
         let queued = Arc::new(AtomicUsize::new(0));
         let close_by = Arc::new(Mutex::new(None));
         let published = Arc::new(AtomicU64::new(0));
         let worker = Worker {
-            info: info.clone(),
-            encoder,
+            spec: spec.clone(),
+            model,
+            serving: serving.clone(),
             results: results.clone(),
             queued: queued.clone(),
             metrics: metrics.clone(),
@@ -127,7 +143,7 @@ impl Scene {
             tracker: tracker.map(Tracker::new),
         };
         let handle = std::thread::Builder::new()
-            .name(format!("encoder-{}", info.spec.name))
+            .name(format!("encoder-{}", spec.name))
             .spawn(move || worker.run(rx))
             .map_err(|e| Error::internal_from("cannot start the encoder thread", e))?;
         Ok(Arc::new(Scene {
@@ -136,7 +152,8 @@ impl Scene {
                     .with_window(limits.frame_window),
                 jobs: Some(tx),
             }),
-            info,
+            spec,
+            serving,
             limits,
             sync_timeout,
             metrics,
@@ -152,9 +169,34 @@ impl Scene {
         }))
     }
 
-    /// Static facts.
-    pub fn info(&self) -> &SceneInfo {
-        &self.info
+    /// Name and cameras (never change: a model for other cameras is refused).
+    pub fn spec(&self) -> &SceneSpec {
+        &self.spec
+    }
+
+    /// The model serving the scene as of the last applied swap; `None` while it has none.
+    pub fn serving(&self) -> Option<SceneInfo> {
+        lock(&self.serving).clone()
+    }
+
+    /// Queues a model swap behind the frames already queued (they are associated by the old
+    /// model, every later one by the new) and waits until the worker applies it. A model for
+    /// other cameras is refused and the old one keeps serving.
+    pub async fn swap(&self, info: SceneInfo, encoder: Box<dyn Encoder>) -> Result<()> {
+        crate::registry::check_fits(&self.spec, &info)?;
+        let (applied, done) = oneshot::channel();
+        {
+            let intake = lock(&self.intake);
+            let jobs = intake
+                .jobs
+                .as_ref()
+                .ok_or_else(|| Error::Unavailable("server is shutting down".into()))?;
+            let model = Box::new(Model { info, encoder });
+            jobs.send(Job::Swap { model, applied })
+                .map_err(|_| Error::Unavailable("encoder worker is gone".into()))?;
+        }
+        done.await
+            .map_err(|_| Error::Unavailable("encoder worker stopped".into()))
     }
 
     /// The size and cost limits the scene enforces.
@@ -164,18 +206,23 @@ impl Scene {
 
     /// Scene name.
     pub fn name(&self) -> &str {
-        &self.info.spec.name
+        &self.spec.name
     }
 
     /// The public description (`GetScene`).
     pub fn describe(&self) -> SceneDescription {
         let app = self.appearance_len.load(Ordering::Relaxed);
+        let serving = self.serving();
+        let association = serving
+            .as_ref()
+            .map(|i| i.association.clone())
+            .unwrap_or_default();
         SceneDescription {
-            name: self.info.spec.name.clone(),
-            cameras: self.info.spec.cameras.clone(),
-            threshold: self.info.association.threshold,
-            alpha: self.info.association.alpha,
-            model_version: self.info.version.clone(),
+            name: self.spec.name.clone(),
+            cameras: self.spec.cameras.clone(),
+            threshold: association.threshold,
+            alpha: association.alpha,
+            model_version: serving.map(|i| i.version),
             appearance_length: (app > 0).then_some(app),
             sync_timeout_ms: self.sync_timeout.as_millis() as u64,
         }
@@ -184,7 +231,7 @@ impl Scene {
     /// Accepts one camera batch into the synchronizer (see the module docs). Late, duplicate
     /// and out-of-range batches are rejected and counted.
     pub fn push(&self, camera: &str, frame_id: u64, mut detections: Vec<Detection>) -> Result<()> {
-        let cam = self.info.spec.camera_index(camera)?;
+        let cam = self.spec.camera_index(camera)?;
         let app_len = self.validate("detections", cam, &mut detections)?;
         let n_boxes = detections.len();
         let mut intake = lock(&self.intake);
@@ -279,11 +326,14 @@ impl Scene {
         views: Vec<(String, Vec<Detection>)>,
     ) -> Result<FrameResult> {
         let started = Instant::now();
-        let n = self.info.spec.cameras.len();
+        if lock(&self.serving).is_none() {
+            return Err(Error::NoModel(self.spec.name.clone()));
+        }
+        let n = self.spec.cameras.len();
         let mut frame = Frame::new(frame_id, n);
         let mut app_len: Option<usize> = None;
         for (k, (camera, mut dets)) in views.into_iter().enumerate() {
-            let c = self.info.spec.camera_index(&camera)?;
+            let c = self.spec.camera_index(&camera)?;
             if frame.views[c].is_some() {
                 return Err(Error::invalid(
                     format!("views[{k}].camera"),

@@ -34,7 +34,7 @@ impl Scene {
                 ),
             ));
         }
-        let cam = &self.info.spec.cameras[camera];
+        let cam = &self.spec.cameras[camera];
         let mut expected = match self.appearance_len.load(Ordering::Relaxed) {
             0 => None,
             n => Some(n),

@@ -2,6 +2,11 @@
 //! queued frame with one encoder call, and publishes the results in queue order. A frame that
 //! waited past the frame deadline (or the shutdown grace) is published with an error instead,
 //! so every accepted batch still appears in exactly one result.
+//!
+//! A model swap is one more job in the same queue: the frames queued before it are associated
+//! by the old model, those after it by the new one, none twice or lost. A scene declared by its
+//! cameras alone has no model: its frames are published unassociated (`no_model`) until one
+//! arrives.
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -9,11 +14,11 @@ use std::time::{Duration, Instant};
 use tokio::sync::{broadcast, oneshot};
 
 use crossview_api::convert::identity_out;
-use crossview_api::types::{FrameResult, IdentityOut};
+use crossview_api::types::{FrameResult, IdentityOut, ResultStatus};
 use crossview_core::association::{embed_frame, frame_identities};
 use crossview_core::identity::Identity;
 use crossview_core::tracking::Tracker;
-use crossview_core::{Encoder, Error, Frame, FrameEmbeddings, Result};
+use crossview_core::{Encoder, Error, Frame, FrameEmbeddings, Result, SceneSpec};
 
 use super::{SceneInfo, lock};
 use crate::metrics::Metrics;
@@ -29,12 +34,26 @@ pub(super) enum Job {
         started: Instant,
         reply: oneshot::Sender<Result<FrameResult>>,
     },
+    /// Serve with this model from the next job on; `applied` hears when it does.
+    Swap {
+        model: Box<Model>,
+        applied: oneshot::Sender<()>,
+    },
+}
+
+/// A loaded model: what it says about the scene and its encoder.
+pub(crate) struct Model {
+    pub(crate) info: SceneInfo,
+    pub(crate) encoder: Box<dyn Encoder>,
 }
 
 /// The worker's state; [`Worker::run`] consumes it on its thread.
 pub(super) struct Worker {
-    pub(super) info: SceneInfo,
-    pub(super) encoder: Box<dyn Encoder>,
+    pub(super) spec: SceneSpec,
+    /// `None` while the scene has no model.
+    pub(super) model: Option<Model>,
+    /// What the scene describes as its model: the worker's, updated when a swap is applied.
+    pub(super) serving: Arc<Mutex<Option<SceneInfo>>>,
     pub(super) results: broadcast::Sender<Arc<FrameResult>>,
     pub(super) queued: Arc<AtomicUsize>,
     pub(super) metrics: Metrics,
@@ -54,7 +73,7 @@ impl Worker {
                 Job::Stream(e) => {
                     let r = self.stream_result(&e.frame, e.first_seen);
                     self.metrics
-                        .frame_latency(&self.info.spec.name, e.first_seen.elapsed());
+                        .frame_latency(&self.spec.name, e.first_seen.elapsed());
                     self.queued.fetch_sub(1, Ordering::AcqRel);
                     // Count first, so a subscriber never sees more results than published.
                     self.published.fetch_add(1, Ordering::AcqRel);
@@ -68,21 +87,43 @@ impl Worker {
                 } => {
                     // The caller counts the error (the service does, once).
                     let r = self.associate_in_time(&frame, started).map(|(ids, _)| {
-                        let spec = &self.info.spec;
+                        let spec = &self.spec;
                         let ids = ids.into_iter().map(|id| identity_out(spec, id, None));
                         self.result(&frame, started, ids.collect())
                     });
                     self.queued.fetch_sub(1, Ordering::AcqRel);
                     let _ = reply.send(r);
                 }
+                Job::Swap { model, applied } => {
+                    self.swap(*model);
+                    let _ = applied.send(());
+                }
             }
         }
-        tracing::debug!(scene = %self.info.spec.name, "encoder worker done");
+        tracing::debug!(scene = %self.spec.name, "encoder worker done");
+    }
+
+    /// Serves with `model` from now on. The tracks end (a new model's embedding space is not
+    /// the old one's); track ids go on counting, so no id is reused.
+    fn swap(&mut self, model: Model) {
+        let from = self.model.as_ref().map(|m| m.info.version.clone());
+        tracing::info!(scene = %self.spec.name, from = from.as_deref().unwrap_or("none"), to = %model.info.version, "model swapped in");
+        *lock(&self.serving) = Some(model.info.clone());
+        self.model = Some(model);
+        if let Some(t) = &mut self.tracker {
+            t.end_tracks();
+        }
     }
 
     /// The published result of a synchronized frame: its identities with their track ids, or
     /// the error (message and kind, counted here: no caller sees it) without identities.
     fn stream_result(&mut self, frame: &Frame, first_seen: Instant) -> FrameResult {
+        if self.model.is_none() {
+            self.metrics.unassociated(&self.spec.name);
+            let mut r = self.result(frame, first_seen, Vec::new());
+            r.status = ResultStatus::NoModel;
+            return r;
+        }
         match self.associate_in_time(frame, first_seen) {
             Ok((ids, embeddings)) => {
                 let tracks = match &mut self.tracker {
@@ -93,7 +134,7 @@ impl Worker {
                         .collect(),
                     None => vec![None; ids.len()],
                 };
-                let spec = &self.info.spec;
+                let spec = &self.spec;
                 let ids = ids
                     .into_iter()
                     .zip(tracks)
@@ -106,6 +147,7 @@ impl Worker {
                 let mut r = self.result(frame, first_seen, Vec::new());
                 r.error = Some(e.report());
                 r.error_kind = Some(e.kind().to_string());
+                r.status = ResultStatus::Failed;
                 r
             }
         }
@@ -147,10 +189,14 @@ impl Worker {
     /// Embeds the frame in one encoder call and builds its identities (SPEC §3); a panic in
     /// the method becomes an [`Error::Internal`] instead of taking the scene down.
     fn associate(&mut self, frame: &Frame) -> Result<(Vec<Identity>, FrameEmbeddings)> {
-        let spec = &self.info.spec;
+        let spec = &self.spec;
+        let model = self
+            .model
+            .as_mut()
+            .ok_or_else(|| Error::NoModel(spec.name.clone()))?;
         let t = Instant::now();
-        let encoder = self.encoder.as_mut();
-        let config = &self.info.association;
+        let encoder = model.encoder.as_mut();
+        let config = &model.info.association;
         let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
             let embeddings = embed_frame(encoder, spec, frame)?;
             let identities = frame_identities(frame, &embeddings, config);
@@ -174,7 +220,7 @@ impl Worker {
 
     /// The published form of `frame` with `identities`.
     fn result(&self, frame: &Frame, started: Instant, identities: Vec<IdentityOut>) -> FrameResult {
-        let spec = &self.info.spec;
+        let spec = &self.spec;
         FrameResult {
             scene: spec.name.clone(),
             frame_id: frame.frame_id,
@@ -190,6 +236,8 @@ impl Worker {
             latency_ms: started.elapsed().as_secs_f64() * 1e3,
             error: None,
             error_kind: None,
+            status: ResultStatus::Associated,
+            model_version: self.model.as_ref().map(|m| m.info.version.clone()),
         }
     }
 }

@@ -1,0 +1,147 @@
+//! Live model swaps: re-reads every scene's model file (on `SIGHUP`, or the admin route),
+//! loads and checks it off the hot path (ONNX Runtime session creation on a blocking thread),
+//! and queues the swap behind the frames already waiting ([`crate::Scene::swap`]): no
+//! accepted batch is lost or associated twice, and every result names the version that
+//! produced it. A file that is missing, corrupt or made for other cameras is refused with a
+//! log line and `crossview_model_reloads_total{outcome="refused"}`; the old model keeps
+//! serving.
+use std::sync::Arc;
+
+use serde::Serialize;
+
+use crate::config::{Limits, ModelSpec};
+use crate::registry;
+use crate::service::Service;
+use crossview_core::Error;
+
+/// What a reload did to one scene.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct ReloadOutcome {
+    /// The scene.
+    pub scene: String,
+    /// `swapped`, `unchanged` (the same file), `missing` (no file yet: a scene declared by
+    /// its cameras keeps waiting for one) or `refused` (see `error`).
+    pub outcome: &'static str,
+    /// The version serving the scene after the reload (`None`: no model).
+    pub version: Option<String>,
+    /// Why a file was refused.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+}
+
+/// The model files a server reloads, by scene.
+#[derive(Debug, Clone)]
+pub(crate) struct Reloader {
+    models: Vec<ModelSpec>,
+    limits: Limits,
+    /// One reload at a time: a second waits for the first.
+    running: Arc<tokio::sync::Mutex<()>>,
+}
+
+impl Reloader {
+    pub(crate) fn new(models: Vec<ModelSpec>, limits: Limits) -> Self {
+        Reloader {
+            models,
+            limits,
+            running: Arc::default(),
+        }
+    }
+
+    /// Re-reads every scene's model file and swaps in those that changed.
+    pub(crate) async fn reload(&self, service: &Service) -> Vec<ReloadOutcome> {
+        let _one = self.running.lock().await;
+        let mut out = Vec::with_capacity(self.models.len());
+        for spec in &self.models {
+            let outcome = self.reload_one(service, spec).await;
+            service
+                .metrics()
+                .model_reload(&outcome.scene, outcome.outcome);
+            match &outcome.error {
+                Some(e) => {
+                    tracing::warn!(scene = %outcome.scene, path = %spec.path.display(), error = %e, "model refused; the old one keeps serving")
+                }
+                None => {
+                    tracing::info!(scene = %outcome.scene, outcome = outcome.outcome, version = outcome.version.as_deref().unwrap_or("none"), "model reload")
+                }
+            }
+            out.push(outcome);
+        }
+        out
+    }
+
+    async fn reload_one(&self, service: &Service, spec: &ModelSpec) -> ReloadOutcome {
+        let scene = match service.scene(&spec.name) {
+            Ok(s) => s.clone(),
+            Err(e) => return refused(spec, None, &e),
+        };
+        let current = scene.serving().map(|i| i.version);
+        let result = |outcome, version| ReloadOutcome {
+            scene: spec.name.clone(),
+            outcome,
+            version,
+            error: None,
+        };
+        // The file's content hash first: an unchanged file costs no session.
+        let path = spec.path.clone();
+        let hash = tokio::task::spawn_blocking(move || {
+            std::fs::read(&path)
+                .ok()
+                .map(|b| registry::model_version("", &b))
+        })
+        .await
+        .ok()
+        .flatten();
+        let Some(hash) = hash else {
+            return result("missing", current);
+        };
+        if current.as_deref().is_some_and(|v| v.ends_with(&hash)) {
+            return result("unchanged", current);
+        }
+        let limits = self.limits;
+        let spec2 = spec.clone();
+        let model = tokio::task::spawn_blocking(move || registry::load_model(&spec2, &limits))
+            .await
+            .unwrap_or_else(|e| Err(Error::internal_from("model loading panicked", e)));
+        let (info, encoder) = match model {
+            Ok(m) => m,
+            Err(e) => return refused(spec, current, &e),
+        };
+        let version = info.version.clone();
+        match scene.swap(info, encoder).await {
+            Ok(()) => result("swapped", Some(version)),
+            Err(e) => refused(spec, current, &e),
+        }
+    }
+}
+
+fn refused(spec: &ModelSpec, version: Option<String>, e: &Error) -> ReloadOutcome {
+    ReloadOutcome {
+        scene: spec.name.clone(),
+        outcome: "refused",
+        version,
+        error: Some(crate::truncate_echo(&e.report()).into_owned()),
+    }
+}
+
+/// Reloads on every `SIGHUP` until the service shuts down (the usual Unix convention).
+#[cfg(unix)]
+pub(crate) fn spawn_on_sighup(service: Arc<Service>) -> crossview_core::Result<()> {
+    use tokio::signal::unix::{SignalKind, signal};
+    let mut hup = signal(SignalKind::hangup())
+        .map_err(|e| Error::internal_from("cannot listen for SIGHUP", e))?;
+    let stop = service.shutting_down();
+    tokio::spawn(async move {
+        tokio::pin!(stop);
+        loop {
+            tokio::select! {
+                got = hup.recv() => {
+                    if got.is_none() { break; }
+                    tracing::info!("SIGHUP: reloading model files");
+                    service.reload().await;
+                }
+                _ = &mut stop => break,
+            }
+        }
+    });
+    Ok(())
+}
