@@ -15,6 +15,7 @@ mod metrics_labels;
 mod ndjson_bounds;
 mod partial;
 mod python_client;
+mod record;
 mod shutdown;
 mod sync_order;
 mod tls;

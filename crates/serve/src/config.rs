@@ -171,6 +171,8 @@ pub struct ServeConfig {
     pub shutdown_grace: Duration,
     /// How each scene links its identities over time into track ids.
     pub tracker: TrackerConfig,
+    /// Record every accepted batch ([`super::record`]) when set.
+    pub record: Option<super::record::RecordConfig>,
 }
 
 impl std::fmt::Debug for ServeConfig {
@@ -188,6 +190,7 @@ impl std::fmt::Debug for ServeConfig {
             .field("connections", &self.connections)
             .field("shutdown_grace", &self.shutdown_grace)
             .field("tracker", &self.tracker)
+            .field("record", &self.record)
             .finish()
     }
 }
@@ -204,6 +207,7 @@ impl Default for ServeConfig {
             connections: ConnectionLimits::default(),
             shutdown_grace: Duration::from_secs(10),
             tracker: TrackerConfig::default(),
+            record: None,
         }
     }
 }

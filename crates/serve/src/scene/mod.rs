@@ -31,6 +31,7 @@ use crossview_core::{Detection, Encoder, Error, Frame, Result, SceneSpec};
 
 use crate::config::Limits;
 use crate::metrics::Metrics;
+use crate::record::SceneRecorder;
 use crate::sync::{Rejection, Synchronizer};
 
 mod admission;
@@ -77,6 +78,8 @@ pub struct Scene {
     /// Wakes the timer task when a new frame starts waiting.
     pub(crate) wake: Notify,
     worker: Mutex<Option<std::thread::JoinHandle<()>>>,
+    /// Where accepted batches are recorded (`--record`), if anywhere.
+    recorder: Option<SceneRecorder>,
 }
 
 impl std::fmt::Debug for Scene {
@@ -90,7 +93,9 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl Scene {
-    /// Starts a scene: its worker thread takes ownership of `encoder`.
+    /// Starts a scene: its worker thread takes ownership of `encoder`. With `recorder`, every
+    /// accepted batch is also recorded ([`crate::record`]).
+    #[allow(clippy::too_many_arguments)]
     pub fn start(
         info: SceneInfo,
         encoder: Box<dyn Encoder>,
@@ -99,6 +104,7 @@ impl Scene {
         limits: Limits,
         tracker: TrackerConfig,
         metrics: Metrics,
+        recorder: Option<SceneRecorder>,
     ) -> Result<Arc<Scene>> {
         let n = info.spec.cameras.len();
         if n == 0 || n > limits.max_cameras {
@@ -149,6 +155,7 @@ impl Scene {
             published,
             wake: Notify::new(),
             worker: Mutex::new(Some(handle)),
+            recorder,
         }))
     }
 
@@ -187,6 +194,8 @@ impl Scene {
         let cam = self.info.spec.camera_index(camera)?;
         let app_len = self.validate("detections", cam, &mut detections)?;
         let n_boxes = detections.len();
+        // The recorder's copy, taken before the lock (the synchronizer takes the original).
+        let recorded = self.recorder.as_ref().map(|_| detections.clone());
         let mut intake = lock(&self.intake);
         // Shed before accepting anything. One batch can release several frames at once, so the
         // queue may overshoot the capacity by at most `max_pending_frames`: still bounded.
@@ -215,6 +224,10 @@ impl Scene {
                     .compare_exchange(0, n, Ordering::Relaxed, Ordering::Relaxed);
         }
         self.metrics.batch(self.name());
+        // Accepted: recorded exactly once, under the lock, so in acceptance order (never blocks).
+        if let (Some(r), Some(dets)) = (&self.recorder, recorded) {
+            r.record(camera, frame_id, dets);
+        }
         self.enqueue(&mut intake, emitted);
         drop(intake);
         // The earliest deadline may have changed.
