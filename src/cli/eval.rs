@@ -17,7 +17,7 @@ use crossview_core::matching::Match;
 use crossview_core::tracking::{Tracker, TrackerConfig};
 use crossview_core::{CameraSpec, Frame, SceneSpec};
 use crossview_data::Recording;
-use crossview_data::recording::read_recording;
+use crossview_data::recording::read_recordings;
 use crossview_eval::driver::evaluate_settings_on;
 use crossview_eval::dump::{read_dump, write_dump_on};
 use crossview_eval::metrics::compute_metrics;
@@ -32,9 +32,11 @@ pub struct EvalArgs {
     /// Model file (SPEC §8 ONNX).
     #[arg(long, env = "CROSSVIEW_MODEL", required_unless_present = "from_dump")]
     pub model: Option<PathBuf>,
-    /// Recording with ground-truth ids on every box (SPEC §7 JSONL).
+    /// Recording with ground-truth ids on every box (SPEC §7 JSONL): a file, or a directory
+    /// (every `*.jsonl` file below it, e.g. a `serve --record` directory); repeatable, all
+    /// read as one recording (same scene). A torn last line of a file is dropped and counted.
     #[arg(long, required_unless_present = "from_dump")]
-    pub data: Option<PathBuf>,
+    pub data: Vec<PathBuf>,
     /// SPEC §3 threshold on `S` for the pairwise row (default: the model's
     /// `crossview.threshold`).
     #[arg(long)]
@@ -98,9 +100,10 @@ pub struct AssociateArgs {
     /// Model file (SPEC §8 ONNX).
     #[arg(long, env = "CROSSVIEW_MODEL")]
     pub model: PathBuf,
-    /// Recording (SPEC §7 JSONL); ids, if present, are ignored.
-    #[arg(long)]
-    pub data: PathBuf,
+    /// Recording (SPEC §7 JSONL); ids, if present, are ignored. A file or a directory;
+    /// repeatable, read as one recording (like `crossview eval --data`).
+    #[arg(long, required = true)]
+    pub data: Vec<PathBuf>,
     /// Output JSONL: one line per frame with its identities.
     #[arg(long)]
     pub out: PathBuf,
@@ -195,7 +198,7 @@ fn config(
 /// data error.
 fn load_and_read(
     model: &Path,
-    data: &Path,
+    data: &[PathBuf],
     workers: usize,
 ) -> anyhow::Result<(Vec<OnnxEncoder>, Recording)> {
     std::thread::scope(|scope| {
@@ -204,13 +207,28 @@ fn load_and_read(
                 scope.spawn(|| OnnxEncoder::load_with(model, EncoderOptions { intra_threads: 1 }))
             })
             .collect();
-        let recording = read_recording(data);
+        let recording = read_recordings(data, true);
         let encoders = loaders
             .into_iter()
             .map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
             .collect::<crossview_core::Result<Vec<_>>>()?;
-        Ok((encoders, recording?))
+        let (recording, stats) = recording?;
+        if stats.torn_lines > 0 {
+            eprintln!(
+                "note: dropped {} torn last line(s) of the recording's files (cut short by a crash)",
+                stats.torn_lines
+            );
+        }
+        Ok((encoders, recording))
     })
+}
+
+/// The recording's name in reports: its paths, comma-separated.
+fn data_name(data: &[PathBuf]) -> String {
+    data.iter()
+        .map(|p| p.display().to_string())
+        .collect::<Vec<_>>()
+        .join(",")
 }
 
 /// Runs `crossview eval`.
@@ -245,9 +263,12 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         }
         return Ok(());
     }
-    let (Some(model), Some(data)) = (&args.model, &args.data) else {
+    let (Some(model), data) = (&args.model, &args.data) else {
         bail!("--model and --data are required (or --from-dump)");
     };
+    if data.is_empty() {
+        bail!("--model and --data are required (or --from-dump)");
+    }
     let workers = worker_count(args.workers);
     let (mut encoders, recording) = load_and_read(model, data, workers)?;
     let meta = encoders[0].metadata().clone();
@@ -314,12 +335,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         }
     }
     if let Some(path) = &args.report {
-        EvalReport::new(
-            &model.display().to_string(),
-            &data.display().to_string(),
-            &runs,
-        )
-        .write(path)?;
+        EvalReport::new(&model.display().to_string(), &data_name(data), &runs).write(path)?;
     }
     if let Some(path) = &args.dump_pairs {
         write_dump_on(path, &runs[0].records, workers)?;

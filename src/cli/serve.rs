@@ -7,7 +7,7 @@ use clap::Args;
 
 use crossview_core::tracking::TrackerConfig;
 use crossview_serve::config::SceneDecl;
-use crossview_serve::{ConnectionLimits, Limits, ModelSpec, ServeConfig, TlsConfig};
+use crossview_serve::{ConnectionLimits, Limits, ModelSpec, RecordConfig, ServeConfig, TlsConfig};
 
 /// Serve association over gRPC and HTTP JSON on one port.
 #[derive(Debug, Args)]
@@ -127,6 +127,24 @@ pub struct ServeArgs {
     /// ~0.2 ms per crowded frame).
     #[arg(long, env = "CROSSVIEW_NO_TRACKING")]
     pub no_tracking: bool,
+    /// Record every accepted batch (SPEC §7 JSON Lines) under this directory, one
+    /// sub-directory per scene of rotating files (docs/serve.md, "Recording").
+    #[arg(long, env = "CROSSVIEW_RECORD")]
+    pub record: Option<PathBuf>,
+    /// A recording file is rotated before it would grow past this many bytes.
+    #[arg(long, env = "CROSSVIEW_RECORD_MAX_FILE_BYTES", default_value_t = RecordConfig::new("").max_file_bytes)]
+    pub record_max_file_bytes: u64,
+    /// A recording file is rotated when a batch arrives once it is this old (e.g. `10m`).
+    #[arg(long, env = "CROSSVIEW_RECORD_MAX_FILE_AGE", default_value = "10m", value_parser = parse_duration)]
+    pub record_max_file_age: Duration,
+    /// All recording files under --record together stay within this many bytes; the oldest
+    /// files are removed first.
+    #[arg(long, env = "CROSSVIEW_RECORD_MAX_BYTES", default_value_t = RecordConfig::new("").max_bytes)]
+    pub record_max_bytes: u64,
+    /// Memory (estimated bytes) of accepted batches waiting to be written; beyond it a batch
+    /// is not recorded and counted (`crossview_record_dropped_total`).
+    #[arg(long, env = "CROSSVIEW_RECORD_QUEUE_BYTES", default_value_t = RecordConfig::new("").queue_bytes)]
+    pub record_queue_bytes: usize,
 }
 
 /// Parses `250ms`, `2s`, `1.5s`, `10m` or a bare number of milliseconds.
@@ -216,6 +234,13 @@ impl ServeArgs {
                 max_age: self.track_max_age,
                 gate: self.track_gate,
                 ..TrackerConfig::default()
+            }),
+            record: self.record.as_ref().map(|dir| RecordConfig {
+                dir: dir.clone(),
+                max_file_bytes: self.record_max_file_bytes,
+                max_file_age: self.record_max_file_age,
+                max_bytes: self.record_max_bytes,
+                queue_bytes: self.record_queue_bytes,
             }),
         })
     }

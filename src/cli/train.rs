@@ -14,9 +14,11 @@ use crossview_train::trainer::{CheckpointOptions, LrSchedule, Select, TrainConfi
 /// Options of `crossview train`.
 #[derive(Debug, Args)]
 pub struct TrainArgs {
-    /// Training recording (SPEC §7 JSONL); ids, if any, are ignored.
-    #[arg(long, env = "CROSSVIEW_TRAIN_DATA")]
-    pub data: PathBuf,
+    /// Training recording (SPEC §7 JSONL); ids, if any, are ignored. A file or a directory
+    /// (every `*.jsonl` file below it, e.g. a `serve --record` directory); repeatable, all
+    /// read as one recording (same scene). A torn last line of a file is dropped and counted.
+    #[arg(long, env = "CROSSVIEW_TRAIN_DATA", required = true)]
+    pub data: Vec<PathBuf>,
     /// Labelled validation recording: periodic validation, best-model keeping and
     /// threshold selection.
     #[arg(long, env = "CROSSVIEW_TRAIN_VAL")]
@@ -305,7 +307,10 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         },
         progress: !args.quiet,
     })
-    .with_context(|| format!("training on {}", args.data.display()))?;
+    .with_context(|| {
+        let names: Vec<_> = args.data.iter().map(|p| p.display().to_string()).collect();
+        format!("training on {}", names.join(", "))
+    })?;
     println!(
         "wrote {} ({}); curve {}; data: {}",
         args.out.display(),

@@ -527,3 +527,112 @@ fn a_lenient_reader_skips_broken_boxes_and_lines_with_a_count() {
     assert_eq!(rec.frame_ids(), vec![0, 2]);
     assert_eq!(rec.num_boxes(), 3);
 }
+
+#[test]
+fn a_torn_last_line_is_dropped_and_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    let a0 = r#"{"camera": "a", "frame_id": 0, "detections": [{"bbox": [1, 1, 9, 9]}]}"#;
+    // Cut short by a crash: no newline, not complete JSON (also mid-character).
+    for tail in [
+        r#"{"camera": "b", "frame_id": 0, "detec"#.as_bytes(),
+        b"{\"camera\": \"\xc3",
+        b"\0\0\0\0",
+    ] {
+        let mut text = format!("{HEADER}\n{a0}\n").into_bytes();
+        text.extend_from_slice(tail);
+        let path = dir.path().join("torn.jsonl");
+        std::fs::write(&path, &text).unwrap();
+        let (rec, stats) = read_recording_with(&path, true).unwrap();
+        assert_eq!(stats.torn_lines, 1, "{tail:?}");
+        assert_eq!(rec.num_boxes(), 1);
+    }
+    // A complete last line without its newline is kept.
+    let b0 = r#"{"camera": "b", "frame_id": 0, "detections": []}"#;
+    let path = write_file(&dir, "no-newline.jsonl", &format!("{HEADER}\n{a0}\n{b0}"));
+    let (rec, stats) = read_recording_with(&path, true).unwrap();
+    assert_eq!(stats.torn_lines, 0);
+    assert!(rec.frames[0].views[1].is_some());
+    // The same broken line anywhere but last (or with its newline) stays an error.
+    let bad = r#"{"camera": "b", "frame_id": 0, "detec"#;
+    let path = write_file(&dir, "middle.jsonl", &format!("{HEADER}\n{bad}\n{a0}"));
+    match read_recording(&path) {
+        Err(Error::Format { line, .. }) => assert_eq!(line, 2),
+        other => panic!("{other:?}"),
+    }
+    let path = write_file(
+        &dir,
+        "terminated.jsonl",
+        &format!("{HEADER}\n{a0}\n{bad}\n"),
+    );
+    assert!(read_recording(&path).is_err());
+    // The streaming reader drops it too.
+    let text = format!("{HEADER}\n{a0}\n{bad}");
+    let mut reader = RecordingReader::new(text.as_bytes(), "mem").unwrap();
+    assert!(reader.next().unwrap().is_ok());
+    assert!(reader.next().is_none());
+    assert_eq!(reader.stats().torn_lines, 1);
+}
+
+#[test]
+fn a_directory_or_several_files_read_as_one_recording() {
+    let dir = tempfile::tempdir().unwrap();
+    let sub = dir.path().join("lab");
+    std::fs::create_dir(&sub).unwrap();
+    let line = |cam: &str, f: u64| {
+        format!(
+            r#"{{"camera": "{cam}", "frame_id": {f}, "detections": [{{"bbox": [1, 1, 9, 9], "id": {f}}}]}}"#
+        )
+    };
+    // Frame 1 is split across the rotation; the second file ends torn; an empty file and a
+    // file with only a torn header add nothing; other files are ignored.
+    let one = format!(
+        "{HEADER}\n{}\n{}\n{}\n",
+        line("a", 0),
+        line("b", 0),
+        line("a", 1)
+    );
+    let two = format!(
+        "{HEADER}\n{}\n{}\n{{\"camera\": \"a\"",
+        line("b", 1),
+        line("a", 2)
+    );
+    std::fs::write(sub.join("0001.jsonl"), one).unwrap();
+    std::fs::write(sub.join("0002.jsonl"), two.clone()).unwrap();
+    std::fs::write(sub.join("0003.jsonl"), "").unwrap();
+    std::fs::write(sub.join("0004.jsonl"), "{\"scene\": {\"na").unwrap();
+    std::fs::write(sub.join("notes.txt"), "not a recording").unwrap();
+    let (rec, stats) = read_recording_with(dir.path(), true).unwrap();
+    assert_eq!(rec.frame_ids(), vec![0, 1, 2]);
+    assert!(
+        rec.frames[1].views.iter().all(Option::is_some),
+        "frame 1 merged"
+    );
+    assert_eq!((stats.torn_lines, stats.empty_files), (2, 1));
+    let files = crossview_data::recording_files(&[dir.path()]).unwrap();
+    assert_eq!(files.len(), 4);
+    // Several files given one by one: the same recording.
+    let (again, _) =
+        crossview_data::read_recordings(&[sub.join("0001.jsonl"), sub.join("0002.jsonl")], true)
+            .unwrap();
+    assert_eq!(again, rec);
+    // A camera twice for one frame across files is a duplicate, naming the later file.
+    std::fs::write(
+        sub.join("0005.jsonl"),
+        format!("{HEADER}\n{}\n", line("b", 1)),
+    )
+    .unwrap();
+    let err = read_recording(dir.path()).unwrap_err().to_string();
+    assert!(
+        err.contains("0005.jsonl") && err.contains("duplicate"),
+        "{err}"
+    );
+    // Another scene is a clear error.
+    let other = HEADER.replace("\"lab\"", "\"yard\"");
+    std::fs::write(sub.join("0005.jsonl"), format!("{other}\n")).unwrap();
+    let err = read_recording(dir.path()).unwrap_err().to_string();
+    assert!(err.contains("same scene") && err.contains("yard"), "{err}");
+    // A directory without recordings.
+    let empty = tempfile::tempdir().unwrap();
+    let err = read_recording(empty.path()).unwrap_err().to_string();
+    assert!(err.contains("no recording"), "{err}");
+}

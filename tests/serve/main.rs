@@ -16,6 +16,7 @@ mod model_swap;
 mod ndjson_bounds;
 mod partial;
 mod python_client;
+mod record;
 mod shutdown;
 mod sync_order;
 mod tls;

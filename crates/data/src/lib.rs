@@ -8,6 +8,6 @@ pub mod wildtrack;
 
 pub use recording::{
     ReadStats, Recording, RecordingReader, RecordingWriter, read_recording, read_recording_with,
-    write_recording,
+    read_recordings, recording_files, write_recording,
 };
 pub use split::{Part, split_bounds, split_frames};

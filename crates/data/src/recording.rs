@@ -1,6 +1,7 @@
 //! The SPEC §7 JSONL recording: a scene header line, then one camera batch per line.
 //!
-//! - [`read_recording`] loads a whole file (or stdin, path `-`) into a [`Recording`].
+//! - [`read_recording`] loads a whole recording into a [`Recording`]: one file, stdin (path
+//!   `-`) or a directory; [`read_recordings`] several of them as one recording.
 //! - [`RecordingReader`] streams it: the header first, then an iterator of validated
 //!   [`Batch`]es, so huge files never sit in memory.
 //! - [`RecordingWriter`] / [`write_recording`] write the same format back.
@@ -14,11 +15,25 @@
 //! [`ReadStats::clipped_boxes`]. A [`lenient`](RecordingReader::lenient) reader (the trainer's
 //! default) skips a broken box or a broken line with a count instead of failing: real
 //! detector output is careless, and one bad box must not abort a 71,000-box recording.
+//!
+//! **Several files, directories, torn tails.** A recording may span several files (as
+//! `crossview serve --record` writes them, rotated): [`read_recordings`] takes files and
+//! directories — a directory stands for every `*.jsonl` file below it, recursively (symbolic
+//! links to directories are not followed), in path order (the server's file names sort by
+//! start time) — and reads them, in the order given, as one recording. Every file starts with
+//! its own scene header and all must declare the same scene; a frame may be spread over several
+//! files (a rotation between its cameras' batches), but a camera twice for one frame, in one
+//! file or two, is still a duplicate. The **last line of each file**, when it has no newline at
+//! its end and is not complete JSON (a crash cut it short while it was written), is **torn**:
+//! it is dropped and counted ([`ReadStats::torn_lines`], one `warn` log with the count), never
+//! an error; a file that holds nothing else (a torn header, or no bytes at all) adds nothing.
+//! A broken line anywhere else, or a last line that ends with its newline, stays an error
+//! naming its file and line.
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::fs::File;
 use std::io::{BufRead, BufReader, BufWriter, Read, Write};
 use std::ops::RangeBounds;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
@@ -111,6 +126,11 @@ pub struct ReadStats {
     /// Broken lines skipped (lenient readers only): malformed JSON, unknown camera,
     /// duplicate batch.
     pub skipped_lines: usize,
+    /// Torn last lines dropped: a file's last line without its newline that is not
+    /// complete JSON (left by a crash while it was written; see the module docs).
+    pub torn_lines: usize,
+    /// Empty files skipped (several files or a directory only).
+    pub empty_files: usize,
     /// The first problem skipped, for the summary.
     pub first_problem: Option<String>,
 }
@@ -134,7 +154,11 @@ pub struct RecordingReader<R> {
     source_name: String,
     reader: R,
     line_no: usize,
-    buf: String,
+    buf: Vec<u8>,
+    /// The last line read had no newline at its end (so it was the input's last).
+    unterminated: bool,
+    /// The last line read was not complete JSON (or not UTF-8).
+    not_json: bool,
     scene: SceneSpec,
     appearance: AppearanceLen,
     /// Per frame id, a bitset of the cameras that reported it (duplicate detection);
@@ -143,6 +167,15 @@ pub struct RecordingReader<R> {
     done: bool,
     lenient: bool,
     stats: ReadStats,
+}
+
+/// What the start of an input holds.
+enum Start<R> {
+    Reader(Box<RecordingReader<R>>),
+    /// No line at all (the source's name).
+    Empty(String),
+    /// Only a torn header (its error, for when that is all there is).
+    TornHeader(Error),
 }
 
 impl RecordingReader<BufReader<Box<dyn Read>>> {
@@ -162,11 +195,22 @@ impl<R: BufRead> RecordingReader<R> {
     /// Wraps a reader; `source_name` names it in error messages. Reads and validates the
     /// header line.
     pub fn new(reader: R, source_name: impl Into<String>) -> Result<Self> {
+        match Self::start(reader, source_name.into())? {
+            Start::Reader(r) => Ok(*r),
+            Start::Empty(name) => Err(Self::empty_error(name)),
+            Start::TornHeader(e) => Err(e),
+        }
+    }
+
+    /// Reads the header: a reader, or what the input holds instead of a header.
+    fn start(reader: R, source_name: String) -> Result<Start<R>> {
         let mut this = RecordingReader {
-            source_name: source_name.into(),
+            source_name,
             reader,
             line_no: 0,
-            buf: String::new(),
+            buf: Vec::new(),
+            unterminated: false,
+            not_json: false,
             scene: SceneSpec {
                 name: String::new(),
                 cameras: Vec::new(),
@@ -178,23 +222,29 @@ impl<R: BufRead> RecordingReader<R> {
             stats: ReadStats::default(),
         };
         let Some(line) = this.next_line()? else {
-            return Err(this.format_err(
-                1,
-                "empty recording: missing the scene header line {\"scene\": {...}}",
-            ));
+            return Ok(Start::Empty(this.source_name));
         };
-        let header: Header = serde_json::from_str(&line).map_err(|e| {
-            this.format_err(
-                this.line_no,
-                format!(
-                    "invalid scene header (expected {{\"scene\": {{\"name\", \"cameras\"}}}}): {e}"
-                ),
-            )
-        })?;
+        let header: Header = match line.map(|l| (serde_json::from_str::<Header>(&l), l)) {
+            Ok((Ok(h), _)) => h,
+            Ok((Err(e), _)) => {
+                let err = this.format_err(
+                    this.line_no,
+                    format!(
+                        "invalid scene header (expected {{\"scene\": {{\"name\", \"cameras\"}}}}): {e}"
+                    ),
+                );
+                if this.unterminated && (e.is_syntax() || e.is_eof()) {
+                    return Ok(Start::TornHeader(err));
+                }
+                return Err(err);
+            }
+            Err(e) if this.unterminated => return Ok(Start::TornHeader(e)),
+            Err(e) => return Err(e),
+        };
         validate_scene(&header.scene)
             .map_err(|m| this.format_err(this.line_no, format!("invalid scene header: {m}")))?;
         this.scene = header.scene;
-        Ok(this)
+        Ok(Start::Reader(Box::new(this)))
     }
 
     /// The scene declared by the header.
@@ -225,6 +275,14 @@ impl<R: BufRead> RecordingReader<R> {
         self.line_no
     }
 
+    fn empty_error(source_name: String) -> Error {
+        Error::Format {
+            source_name,
+            line: 1,
+            message: "empty recording: missing the scene header line {\"scene\": {...}}".into(),
+        }
+    }
+
     fn format_err(&self, line: usize, message: impl Into<String>) -> Error {
         Error::Format {
             source_name: self.source_name.clone(),
@@ -233,21 +291,30 @@ impl<R: BufRead> RecordingReader<R> {
         }
     }
 
-    /// The next non-blank line (trimmed), or `None` at end of input.
-    fn next_line(&mut self) -> Result<Option<String>> {
+    /// The next non-blank line (trimmed), or `None` at end of input; `Some(Err)` for a line
+    /// that is not UTF-8.
+    fn next_line(&mut self) -> Result<Option<Result<String>>> {
         loop {
             self.buf.clear();
             let n = self
                 .reader
-                .read_line(&mut self.buf)
+                .read_until(b'\n', &mut self.buf)
                 .map_err(|e| Error::io(&self.source_name, e))?;
             if n == 0 {
                 return Ok(None);
             }
             self.line_no += 1;
-            let trimmed = self.buf.trim();
+            self.unterminated = self.buf.last() != Some(&b'\n');
+            self.not_json = false;
+            let Ok(text) = std::str::from_utf8(&self.buf) else {
+                self.not_json = true;
+                return Ok(Some(Err(
+                    self.format_err(self.line_no, "malformed batch: not UTF-8")
+                )));
+            };
+            let trimmed = text.trim();
             if !trimmed.is_empty() {
-                return Ok(Some(trimmed.to_string()));
+                return Ok(Some(Ok(trimmed.to_string())));
             }
         }
     }
@@ -255,6 +322,7 @@ impl<R: BufRead> RecordingReader<R> {
     /// Parses and validates one batch line.
     fn parse_batch(&mut self, line: &str) -> Result<Batch> {
         let mut batch: Batch = serde_json::from_str(line).map_err(|e| {
+            self.not_json = e.is_syntax() || e.is_eof();
             let message = if line.contains("\"scene\"") {
                 format!("unexpected second scene header or malformed batch: {e}")
             } else {
@@ -343,7 +411,14 @@ impl<R: BufRead> Iterator for RecordingReader<R> {
                     self.done = true;
                     return None;
                 }
-                Ok(Some(line)) => match self.parse_batch(&line) {
+                Ok(Some(line)) => match line.and_then(|l| self.parse_batch(&l)) {
+                    // The input's last line, cut short: torn by a crash, dropped and counted.
+                    Err(_) if self.unterminated && self.not_json => {
+                        self.stats.torn_lines += 1;
+                        tracing::debug!(source = %self.source_name, line = self.line_no, "dropped a torn last line");
+                        self.done = true;
+                        return None;
+                    }
                     Err(e @ Error::Format { .. }) if self.lenient => {
                         self.stats.skipped_lines += 1;
                         self.stats.skipped(&e);
@@ -361,33 +436,170 @@ impl<R: BufRead> Iterator for RecordingReader<R> {
     }
 }
 
-/// Reads a whole recording from `path` (`-` = stdin) into memory, frames sorted by id; fails
-/// on the first broken box or line.
+/// Reads a whole recording from `path` into memory, frames sorted by id; fails on the first
+/// broken box or line. `path` is a file, `-` (stdin) or a directory (every `*.jsonl` below
+/// it, see the module docs).
 pub fn read_recording(path: impl AsRef<Path>) -> Result<Recording> {
     read_recording_with(path, true).map(|(rec, _)| rec)
 }
 
 /// [`read_recording`], `strict` or lenient (skipping broken boxes and lines, see
-/// [`RecordingReader::lenient`]), with what was clipped and skipped.
+/// [`RecordingReader::lenient`]), with what was clipped, skipped and dropped.
 pub fn read_recording_with(path: impl AsRef<Path>, strict: bool) -> Result<(Recording, ReadStats)> {
-    let mut reader = RecordingReader::open(path)?;
-    if !strict {
-        reader = reader.lenient();
+    read_recordings(&[path.as_ref()], strict)
+}
+
+/// The recording files `paths` stand for, in reading order: a file (or `-`) itself, a
+/// directory every `*.jsonl` file below it, recursively, sorted by path. A directory without
+/// one is an error.
+pub fn recording_files(paths: &[impl AsRef<Path>]) -> Result<Vec<PathBuf>> {
+    fn walk(dir: &Path, out: &mut Vec<PathBuf>) -> Result<()> {
+        let mut entries: Vec<_> = std::fs::read_dir(dir)
+            .map_err(|e| Error::io(dir, e))?
+            .collect::<std::io::Result<_>>()
+            .map_err(|e| Error::io(dir, e))?;
+        entries.sort_by_key(|e| e.file_name());
+        for entry in entries {
+            let path = entry.path();
+            let kind = entry.file_type().map_err(|e| Error::io(&path, e))?;
+            if kind.is_dir() {
+                walk(&path, out)?;
+            } else if path.extension().is_some_and(|x| x == "jsonl") && path.is_file() {
+                out.push(path);
+            }
+        }
+        Ok(())
     }
-    let scene = reader.scene().clone();
-    // The reader already validated cameras, duplicates and detections.
-    let mut assembler = FrameAssembler::new(&scene);
-    for batch in reader.by_ref() {
-        let batch = batch?;
-        let cam = scene.camera_index(&batch.camera)?;
-        assembler.insert(cam, batch.frame_id, batch.detections);
+    let mut files = Vec::new();
+    for p in paths {
+        let p = p.as_ref();
+        if p != Path::new("-") && p.is_dir() {
+            let before = files.len();
+            walk(p, &mut files)?;
+            if files.len() == before {
+                return Err(Error::Format {
+                    source_name: p.display().to_string(),
+                    line: 0,
+                    message: "no recording (*.jsonl) files in this directory".into(),
+                });
+            }
+        } else {
+            files.push(p.to_path_buf());
+        }
+    }
+    Ok(files)
+}
+
+/// Reads the recording files and directories `paths` (see [`recording_files`] and the module
+/// docs) as one recording: all must declare the same scene; torn last lines are dropped and
+/// counted in [`ReadStats::torn_lines`]. `strict` as in [`read_recording_with`].
+pub fn read_recordings(paths: &[impl AsRef<Path>], strict: bool) -> Result<(Recording, ReadStats)> {
+    let files = recording_files(paths)?;
+    let several = files.len() > 1 || paths.iter().any(|p| p.as_ref().is_dir());
+    let mut stats = ReadStats::default();
+    let mut first: Option<(SceneSpec, String)> = None;
+    let mut appearance = AppearanceLen::default();
+    let mut assembler: Option<FrameAssembler> = None;
+    let mut last_problem: Option<Error> = None;
+    for path in &files {
+        let name = path.display().to_string();
+        let inner: Box<dyn Read> = if path == Path::new("-") {
+            Box::new(std::io::stdin())
+        } else {
+            Box::new(File::open(path).map_err(|e| Error::io(path, e))?)
+        };
+        let mut reader = match RecordingReader::start(BufReader::new(inner), name.clone())? {
+            Start::Reader(r) => *r,
+            Start::Empty(n) => {
+                if !several {
+                    return Err(RecordingReader::<&[u8]>::empty_error(n));
+                }
+                stats.empty_files += 1;
+                tracing::debug!(file = %name, "skipped an empty recording file");
+                continue;
+            }
+            Start::TornHeader(e) => {
+                stats.torn_lines += 1;
+                last_problem = Some(e);
+                continue;
+            }
+        };
+        if !strict {
+            reader = reader.lenient();
+        }
+        match &first {
+            None => first = Some((reader.scene().clone(), name.clone())),
+            Some((scene, first_name)) if scene != reader.scene() => {
+                return Err(Error::Format {
+                    source_name: name,
+                    line: 1,
+                    message: format!(
+                        "scene '{}' ({}) differs from scene '{}' ({}) of {first_name}: the files of one recording must declare the same scene",
+                        reader.scene().name,
+                        camera_list(reader.scene()),
+                        scene.name,
+                        camera_list(scene)
+                    ),
+                });
+            }
+            Some(_) => {}
+        }
+        reader.appearance = appearance;
+        let scene = reader.scene().clone();
+        let assembler = assembler.get_or_insert_with(|| FrameAssembler::new(&scene));
+        while let Some(batch) = reader.next() {
+            let batch = batch?;
+            let cam = scene.camera_index(&batch.camera)?;
+            let frame_id = batch.frame_id;
+            if !assembler.insert(cam, frame_id, batch.detections) {
+                // A duplicate across files (the reader finds those within one file).
+                let e = reader.format_err(
+                    reader.line(),
+                    format!(
+                        "duplicate batch: camera '{}' already reported frame {frame_id} in an earlier file",
+                        batch.camera
+                    ),
+                );
+                if strict {
+                    return Err(e);
+                }
+                reader.stats.skipped_lines += 1;
+                reader.stats.skipped(&e);
+            }
+        }
+        appearance = reader.appearance;
+        let s = reader.stats;
+        stats.clipped_boxes += s.clipped_boxes;
+        stats.skipped_boxes += s.skipped_boxes;
+        stats.skipped_lines += s.skipped_lines;
+        stats.torn_lines += s.torn_lines;
+        if stats.first_problem.is_none() {
+            stats.first_problem = s.first_problem;
+        }
+    }
+    let (Some((scene, _)), Some(assembler)) = (first, assembler) else {
+        return Err(last_problem.unwrap_or_else(|| {
+            RecordingReader::<&[u8]>::empty_error(
+                files
+                    .first()
+                    .map(|p| p.display().to_string())
+                    .unwrap_or_default(),
+            )
+        }));
+    };
+    if stats.torn_lines > 0 {
+        tracing::warn!(
+            torn_lines = stats.torn_lines,
+            files = files.len(),
+            "dropped torn last lines (cut short by a crash while they were written)"
+        );
     }
     Ok((
         Recording {
             frames: assembler.finish(),
             scene,
         },
-        reader.stats().clone(),
+        stats,
     ))
 }
 

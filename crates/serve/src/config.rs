@@ -253,6 +253,8 @@ pub struct ServeConfig {
     /// How each scene links its identities over time into track ids; `None` tracks nothing
     /// (streamed identities then carry no `track_id`).
     pub tracker: Option<TrackerConfig>,
+    /// Record every accepted batch ([`super::record`]) when set.
+    pub record: Option<super::record::RecordConfig>,
 }
 
 impl std::fmt::Debug for ServeConfig {
@@ -272,6 +274,7 @@ impl std::fmt::Debug for ServeConfig {
             .field("connections", &self.connections)
             .field("shutdown_grace", &self.shutdown_grace)
             .field("tracker", &self.tracker)
+            .field("record", &self.record)
             .finish()
     }
 }
@@ -290,6 +293,7 @@ impl Default for ServeConfig {
             connections: ConnectionLimits::default(),
             shutdown_grace: Duration::from_secs(10),
             tracker: Some(TrackerConfig::default()),
+            record: None,
         }
     }
 }

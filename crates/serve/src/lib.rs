@@ -5,7 +5,7 @@
 //! thread, results broadcast); [`service`] the one domain API; [`grpc`] and [`http`] thin
 //! transports with the error mappings (wire types and conversions: `crossview-api`) ([`push`]: the gRPC `Push`
 //! and `Stream` calls' own request framing, so a bad message is refused alone); [`auth`], [`tls`],
-//! [`metrics`]; this module binds them into one listener with graceful shutdown.
+//! [`metrics`]; [`record`] the recording of accepted batches (`--record`); this module binds them into one listener with graceful shutdown.
 //!
 //! Tests and the CLI start it the same way: [`Server::load`] (or [`run`]) then
 //! [`Server::serve`] on a bound listener with a shutdown future.
@@ -19,6 +19,7 @@ pub mod grpc;
 pub mod http;
 pub mod metrics;
 pub mod push;
+pub mod record;
 pub mod registry;
 pub mod reload;
 pub mod scene;
@@ -42,6 +43,7 @@ use tokio::net::TcpListener;
 use tower::ServiceExt;
 
 pub use config::{ConnectionLimits, Limits, ModelSpec, ServeConfig, TlsConfig};
+pub use record::RecordConfig;
 pub use scene::{Scene, SceneInfo};
 pub use service::Service;
 
@@ -70,6 +72,7 @@ pub(crate) fn truncate_echo(text: &str) -> Cow<'_, str> {
 pub struct Server {
     service: Arc<Service>,
     config: ServeConfig,
+    recorder: Option<Arc<record::Recorder>>,
 }
 
 impl Server {
@@ -123,8 +126,12 @@ impl Server {
                 specs.push(info.spec.clone());
             }
         }
+        let recorder = match &config.record {
+            Some(rc) => Some(record::Recorder::start(rc.clone(), &specs, metrics.clone())?),
+            None => None,
+        };
         let mut started = Vec::new();
-        for spec in specs {
+        for (k, spec) in specs.into_iter().enumerate() {
             let model = models.remove(&spec.name);
             match &model {
                 Some((info, _)) => {
@@ -142,6 +149,7 @@ impl Server {
                 config.limits,
                 config.tracker.clone(),
                 metrics.clone(),
+                recorder.as_ref().map(|r| r.scene(k)),
             )?);
         }
         let reloader = reload::Reloader::new(config.models.clone(), config.limits);
@@ -152,6 +160,7 @@ impl Server {
                     .with_reloader(reloader),
             ),
             config,
+            recorder,
         })
     }
 
@@ -279,9 +288,16 @@ impl Server {
         let deadline = Instant::now() + self.config.shutdown_grace;
         tracing::info!("shutdown: stopping intake and flushing pending frames");
         let service = self.service.clone();
-        tokio::task::spawn_blocking(move || service.close_by(Some(deadline)))
-            .await
-            .map_err(|e| Error::internal_from("shutdown task failed", e))?;
+        let recorder = self.recorder.clone();
+        tokio::task::spawn_blocking(move || {
+            service.close_by(Some(deadline));
+            // No batch is accepted any more: write out the recording queue.
+            if let Some(r) = recorder {
+                r.close();
+            }
+        })
+        .await
+        .map_err(|e| Error::internal_from("shutdown task failed", e))?;
         tracing::info!("shutdown: frames flushed, closing connections");
         let _ = stop_tx.send(true);
         let until = deadline.max(Instant::now() + Duration::from_millis(200));

@@ -186,6 +186,50 @@ impl Metrics {
         self.observe("crossview_inference_seconds", &[("scene", scene)], d);
     }
 
+    /// `n` accepted batches not recorded (`reason`: `queue_full` or `write_error`).
+    pub(crate) fn record_dropped(&self, scene: &str, reason: &'static str, n: u64) {
+        if n == 0 {
+            return;
+        }
+        self.recorder
+            .register_counter(
+                &key(
+                    "crossview_record_dropped_total",
+                    &[("scene", scene), ("reason", reason)],
+                ),
+                &META,
+            )
+            .increment(n);
+    }
+
+    /// `lines` batches (`bytes` bytes) written to a scene's recording files.
+    pub(crate) fn record_written(&self, scene: &str, lines: u64, bytes: u64) {
+        let l = [("scene", scene)];
+        self.recorder
+            .register_counter(&key("crossview_record_batches_total", &l), &META)
+            .increment(lines);
+        self.recorder
+            .register_counter(&key("crossview_record_bytes_total", &l), &META)
+            .increment(bytes);
+    }
+
+    /// One failed write to a scene's recording file.
+    pub(crate) fn record_write_error(&self, scene: &str) {
+        self.inc("crossview_record_write_errors_total", &[("scene", scene)]);
+    }
+
+    /// One recording file removed to keep within `--record-max-bytes`.
+    pub(crate) fn record_file_removed(&self) {
+        self.inc("crossview_record_files_removed_total", &[]);
+    }
+
+    /// Bytes of all recording files (on disk and buffered).
+    pub(crate) fn record_disk_bytes(&self, bytes: u64) {
+        self.recorder
+            .register_gauge(&key("crossview_record_disk_bytes", &[]), &META)
+            .set(bytes as f64);
+    }
+
     /// The Prometheus text exposition.
     pub fn render(&self) -> String {
         self.handle.run_upkeep();

@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use crossview_core::{CameraSpec, Error, Result};
-use crossview_data::recording::{read_recording, read_recording_with};
+use crossview_data::recording::{read_recording, read_recordings};
 use crossview_model::ModelMetadata;
 use crossview_model::export::{read_weights, write_onnx};
 
@@ -23,8 +23,9 @@ use crate::validate::{EvalValidator, candidate_thresholds};
 /// Everything one run needs, resolved from the command line (`crossview train`).
 #[derive(Debug, Clone)]
 pub struct RunOptions {
-    /// Training recording (SPEC §7); ids, if any, are ignored.
-    pub data: PathBuf,
+    /// Training recording (SPEC §7): files and directories read as one recording
+    /// ([`crossview_data::read_recordings`]); ids, if any, are ignored.
+    pub data: Vec<PathBuf>,
     /// Abort on the first broken box or line instead of skipping it.
     pub strict: bool,
     /// Labelled validation recording (periodic validation; `Select::Labelled` keeps by it).
@@ -68,13 +69,27 @@ pub struct RunReport {
     pub curve: PathBuf,
 }
 
+/// The training data's paths, for messages.
+fn data_label(data: &[PathBuf]) -> String {
+    data.iter()
+        .map(|p| p.display().to_string())
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
 /// Runs one training run (see the module docs) and writes its files.
 pub fn run(opts: RunOptions) -> Result<RunReport> {
-    let (rec, read) = read_recording_with(&opts.data, opts.strict)?;
-    let read_summary = format!(
+    let (rec, read) = read_recordings(&opts.data, opts.strict)?;
+    let mut read_summary = format!(
         "{} boxes clipped at the image edge, {} broken boxes and {} broken lines skipped",
         read.clipped_boxes, read.skipped_boxes, read.skipped_lines
     );
+    if read.torn_lines > 0 {
+        read_summary += &format!(
+            ", {} torn last line(s) dropped (cut short by a crash)",
+            read.torn_lines
+        );
+    }
     if read.skipped_boxes + read.skipped_lines > 0 {
         tracing::warn!(
             clipped = read.clipped_boxes,
@@ -87,7 +102,7 @@ pub fn run(opts: RunOptions) -> Result<RunReport> {
     let mut set = TrainingSet::from_recording(&rec.without_ids(), MIN_FRAMES).map_err(|e| {
         Error::Training(format!(
             "training data {}: {}",
-            opts.data.display(),
+            data_label(&opts.data),
             e.report()
         ))
     })?;
@@ -162,9 +177,14 @@ pub fn run(opts: RunOptions) -> Result<RunReport> {
     )?;
     let data_name = opts.data_name.clone().unwrap_or_else(|| {
         opts.data
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default()
+            .iter()
+            .map(|p| {
+                p.file_name()
+                    .map(|n| n.to_string_lossy().into_owned())
+                    .unwrap_or_default()
+            })
+            .collect::<Vec<_>>()
+            .join(",")
     });
     // The run's own shape (an `--init` model's overrides the requested one).
     let opts = RunOptions {

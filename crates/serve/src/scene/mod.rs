@@ -31,6 +31,7 @@ use crossview_core::{Detection, Encoder, Error, Frame, Result, SceneSpec};
 
 use crate::config::Limits;
 use crate::metrics::Metrics;
+use crate::record::SceneRecorder;
 use crate::sync::{Rejection, Synchronizer};
 
 mod admission;
@@ -80,6 +81,8 @@ pub struct Scene {
     /// Wakes the timer task when a new frame starts waiting.
     pub(crate) wake: Notify,
     worker: Mutex<Option<std::thread::JoinHandle<()>>>,
+    /// Where accepted batches are recorded (`--record`), if anywhere.
+    recorder: Option<SceneRecorder>,
 }
 
 impl std::fmt::Debug for Scene {
@@ -97,7 +100,9 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 
 impl Scene {
     /// Starts scene `spec`: its worker thread takes ownership of the model (`None`: a scene
-    /// declared by its cameras, published unassociated until a model is swapped in).
+    /// declared by its cameras, published unassociated until a model is swapped in). With
+    /// `recorder`, every accepted batch is also recorded ([`crate::record`]).
+    #[allow(clippy::too_many_arguments)]
     pub fn start(
         spec: SceneSpec,
         model: Option<(SceneInfo, Box<dyn Encoder>)>,
@@ -106,6 +111,7 @@ impl Scene {
         limits: Limits,
         tracker: Option<TrackerConfig>,
         metrics: Metrics,
+        recorder: Option<SceneRecorder>,
     ) -> Result<Arc<Scene>> {
         let n = spec.cameras.len();
         if n == 0 || n > limits.max_cameras {
@@ -166,6 +172,7 @@ impl Scene {
             published,
             wake: Notify::new(),
             worker: Mutex::new(Some(handle)),
+            recorder,
         }))
     }
 
@@ -234,6 +241,8 @@ impl Scene {
         let cam = self.spec.camera_index(camera)?;
         let app_len = self.validate("detections", cam, &mut detections)?;
         let n_boxes = detections.len();
+        // The recorder's copy, taken before the lock (the synchronizer takes the original).
+        let recorded = self.recorder.as_ref().map(|_| detections.clone());
         let mut intake = lock(&self.intake);
         // Shed before accepting anything. One batch can release several frames at once, so the
         // queue may overshoot the capacity by at most `max_pending_frames`: still bounded.
@@ -262,6 +271,10 @@ impl Scene {
                     .compare_exchange(0, n, Ordering::Relaxed, Ordering::Relaxed);
         }
         self.metrics.batch(self.name());
+        // Accepted: recorded exactly once, under the lock, so in acceptance order (never blocks).
+        if let (Some(r), Some(dets)) = (&self.recorder, recorded) {
+            r.record(camera, frame_id, dets);
+        }
         self.enqueue(&mut intake, emitted);
         drop(intake);
         // The earliest deadline may have changed.
