@@ -20,3 +20,4 @@ mod sync_order;
 mod tls;
 mod tracking;
 mod unary;
+mod viewer;
