@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
-# Project setup, idempotent, needs only python3 + pip (PyPI):
+# Project setup, idempotent, needs python3 + pip (PyPI) and, for one browser test, Chromium:
 #  - .cache/venv: grpcio + grpcio-tools for the Python gRPC client test;
+#  - chromium (Debian package, when missing and running as root with apt-get) for the live
+#    viewer's browser test;
 #  - .cache/onnxruntime/: the ONNX Runtime shared library from the PyPI wheel onnxruntime==1.31.1.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -14,6 +16,22 @@ if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import grpc, grpc_too
   echo "setup: creating $VENV with grpcio + grpcio-tools" >&2
   python3 -m venv "$VENV"
   "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check grpcio grpcio-tools
+fi
+
+# Headless Chromium for the live viewer's browser test (tests/serve/viewer.rs; without it that
+# test skips locally and fails under CI=true). Installed from Debian's archive when missing and
+# we may (root + apt-get); otherwise a note. Fast when present: one `command -v`.
+if [ -z "${CROSSVIEW_CHROMIUM:-}" ] && ! command -v chromium >/dev/null 2>&1 \
+   && ! command -v chromium-browser >/dev/null 2>&1 && ! command -v google-chrome >/dev/null 2>&1; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    echo "setup: installing chromium (apt-get) for the viewer's browser test" >&2
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get update -qq
+    apt-get install -y -qq chromium >/dev/null
+  else
+    echo "setup: no Chromium found; install it (Debian: apt-get install chromium) or set" \
+      "CROSSVIEW_CHROMIUM for tests/serve/viewer.rs" >&2
+  fi
 fi
 # ---- end serve -------------------------------------------------------------------------------
 

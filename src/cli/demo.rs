@@ -146,6 +146,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
                     "crossview demo: server on {endpoint} (gRPC + HTTP), model {}; streaming {} frames of simulated '{}' (seed {}, {} boxes) over gRPC; ground-truth ids stay here",
                     args.model, args.frames, args.preset, args.seed, if args.noisy { "noisy detector" } else { "ground-truth" }
                 );
+                println!("crossview demo: watch it in a browser at {endpoint}/ (the live viewer; --listen 127.0.0.1:8080 for a fixed port)");
                 let cfg = DemoConfig { sim, scene, pace };
                 let outcome = stream_scene(&endpoint, &cfg, stop, print_frame).await;
                 // Shut the server down whatever happened to the stream.

@@ -22,3 +22,4 @@ mod sync_order;
 mod tls;
 mod tracking;
 mod unary;
+mod viewer;

@@ -1,7 +1,7 @@
 //! Every conversion between the protobuf messages ([`crate::pb`]) and the domain and JSON types
 //! (`crossview_core`, [`crate::types`]), in both directions.
 use crossview_core::identity::Identity;
-use crossview_core::{Batch, Detection, Error, Result, SceneSpec};
+use crossview_core::{Batch, Detection, Error, Frame, Result, SceneSpec};
 
 use crate::pb;
 use crate::types;
@@ -183,5 +183,80 @@ pub fn batch_to_pb(scene: &str, b: &Batch) -> pb::Batch {
         camera: b.camera.clone(),
         frame_id: b.frame_id,
         detections: b.detections.iter().map(detection_to_pb).collect(),
+    }
+}
+
+/// The boxes of every camera that reported `frame` of scene `spec` (the `views` of a
+/// [`types::FrameWithBoxes`]), in scene order; views beyond the scene's cameras are ignored.
+pub fn frame_boxes(spec: &SceneSpec, frame: &Frame) -> Vec<types::CameraBoxes> {
+    spec.cameras
+        .iter()
+        .zip(&frame.views)
+        .enumerate()
+        .filter_map(|(c, (cam, view))| {
+            view.as_ref().map(|dets| types::CameraBoxes {
+                camera: cam.name.clone(),
+                camera_index: c,
+                boxes: dets.iter().map(|d| d.bbox).collect(),
+            })
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crossview_core::CameraSpec;
+
+    #[test]
+    fn a_frame_with_boxes_is_the_result_plus_the_reporting_cameras_boxes() {
+        let cam = |name: &str| CameraSpec {
+            name: name.into(),
+            width: 640,
+            height: 480,
+        };
+        let spec = SceneSpec {
+            name: "s".into(),
+            cameras: vec![cam("a"), cam("b"), cam("c")],
+        };
+        let det = |x: f32| Detection {
+            bbox: [x, 1.0, x + 10.0, 50.0],
+            score: 1.0,
+            id: Some(7),
+            appearance: None,
+        };
+        let mut frame = Frame::new(3, 3);
+        frame.views[0] = Some(vec![det(0.0), det(20.0)]);
+        frame.views[2] = Some(vec![]);
+        let views = frame_boxes(&spec, &frame);
+        let result = types::FrameResult {
+            scene: "s".into(),
+            frame_id: 3,
+            complete: false,
+            missing_cameras: vec!["b".into()],
+            identities: vec![],
+            latency_ms: 1.5,
+            error: None,
+            error_kind: None,
+            status: types::ResultStatus::Associated,
+            model_version: Some("v@0123456789ab".into()),
+        };
+        let with = types::FrameWithBoxes {
+            result: result.clone(),
+            views,
+        };
+        let mut json = serde_json::to_value(&with).unwrap();
+        assert_eq!(
+            json["views"],
+            serde_json::json!([
+                { "camera": "a", "camera_index": 0, "boxes": [[0.0, 1.0, 10.0, 50.0], [20.0, 1.0, 30.0, 50.0]] },
+                { "camera": "c", "camera_index": 2, "boxes": [] },
+            ])
+        );
+        json.as_object_mut().unwrap().remove("views");
+        assert_eq!(json, serde_json::to_value(&result).unwrap());
+        let back: types::FrameWithBoxes =
+            serde_json::from_value(serde_json::to_value(&with).unwrap()).unwrap();
+        assert_eq!(back, with);
     }
 }

@@ -115,3 +115,39 @@ pub struct SceneDescription {
     pub appearance_length: Option<usize>,
     pub sync_timeout_ms: u64,
 }
+
+/// The query of `GET /v1/scenes/{scene}/events`. Unknown parameters are ignored.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct EventsQuery {
+    /// `?boxes=true`: every event is a [`FrameWithBoxes`] (the result plus each reporting
+    /// camera's boxes) instead of a bare [`FrameResult`]. Off by default.
+    #[serde(default)]
+    pub boxes: bool,
+}
+
+/// One camera's boxes in a published frame, as the server associated them (after clipping to
+/// the image): `boxes[i]` is the box that a [`Member`] with this camera and `index == i`
+/// points at.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CameraBoxes {
+    /// Camera name.
+    pub camera: String,
+    /// Camera index in the scene.
+    pub camera_index: usize,
+    /// `[x1, y1, x2, y2]` in pixels of the camera's image, in batch order.
+    pub boxes: Vec<[f32; 4]>,
+}
+
+/// A published frame result together with the boxes it was computed from: the SSE event
+/// data of `GET /v1/scenes/{scene}/events?boxes=true` (what a live viewer draws). Its JSON is
+/// every [`FrameResult`] field unchanged plus `views`: one entry per camera that reported the
+/// frame, in scene order (a camera in `missing_cameras` has none).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameWithBoxes {
+    /// The result, exactly as published without `?boxes`.
+    #[serde(flatten)]
+    pub result: FrameResult,
+    /// Each reporting camera's boxes.
+    #[serde(default)]
+    pub views: Vec<CameraBoxes>,
+}

@@ -1,5 +1,6 @@
 //! Optional bearer-token authentication for every API call on both transports. Health,
-//! readiness, metrics and the gRPC health service are exempt. A gRPC caller gets an
+//! readiness, metrics, the gRPC health service and the live viewer's page and assets (they
+//! hold no data; the page asks for the token and sends it on its API calls) are exempt. A gRPC caller gets an
 //! `UNAUTHENTICATED` status, an HTTP caller a 401.
 use std::sync::Arc;
 
@@ -33,7 +34,9 @@ fn ct_eq(a: &[u8], b: &[u8]) -> bool {
 
 /// Paths that never need a token.
 fn exempt(path: &str) -> bool {
-    matches!(path, "/healthz" | "/readyz" | "/metrics") || path.starts_with("/grpc.health.v1.")
+    matches!(path, "/healthz" | "/readyz" | "/metrics")
+        || path.starts_with("/grpc.health.v1.")
+        || crate::viewer::is_asset(path)
 }
 
 /// True for gRPC requests (content-type `application/grpc[+proto]`).
@@ -131,6 +134,9 @@ mod tests {
         assert!(keys.check(&req("/v1/scenes", Some("s3cret"))).is_err());
         assert!(keys.check(&req("/v1/scenes", None)).is_err());
         assert!(keys.check(&req("/healthz", None)).is_ok());
+        assert!(keys.check(&req("/", None)).is_ok());
+        assert!(keys.check(&req("/viewer.js", None)).is_ok());
+        assert!(keys.check(&req("/v1/scenes/x/events", None)).is_err());
         assert!(
             keys.check(&req("/grpc.health.v1.Health/Check", None))
                 .is_ok()

@@ -107,9 +107,10 @@ async fn forward_results(
                 let Some(r) = r else { return };
                 let item = r
                     .map(|r| {
-                        newest_sent = Some(newest_sent.map_or(r.frame_id, |s| s.max(r.frame_id)));
+                        let id = r.result.frame_id;
+                        newest_sent = Some(newest_sent.map_or(id, |s| s.max(id)));
                         pb::StreamResponse {
-                            event: Some(Event::Result(result_to_pb(&r))),
+                            event: Some(Event::Result(result_to_pb(&r.result))),
                         }
                     })
                     .map_err(status);
@@ -297,7 +298,7 @@ impl pb::association_server::Association for GrpcService {
             .svc
             .subscribe(&request.into_inner().scene, conn, stall)
             .map_err(status)?;
-        let out = results.map(|r| r.map(|r| result_to_pb(&r)).map_err(status));
+        let out = results.map(|r| r.map(|r| result_to_pb(&r.result)).map_err(status));
         Ok(Response::new(Box::pin(out)))
     }
 

@@ -1,10 +1,12 @@
 //! The HTTP JSON transport (axum): the one `Error → response` mapping and thin handlers over
-//! [`Service`], plus health, readiness, metrics and the Server-Sent-Events result stream.
+//! [`Service`], plus health, readiness, metrics, the Server-Sent-Events result stream and the
+//! live viewer's page ([`crate::viewer`]).
 use std::convert::Infallible;
 use std::sync::Arc;
 
 use axum::body::Bytes;
-use axum::extract::{DefaultBodyLimit, FromRequest, Path, Request, State};
+use axum::extract::rejection::QueryRejection;
+use axum::extract::{DefaultBodyLimit, FromRequest, Path, Query, Request, State};
 use axum::http::StatusCode;
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
@@ -14,7 +16,7 @@ use futures::StreamExt;
 use serde::de::DeserializeOwned;
 
 use super::service::Service;
-use crossview_api::types::{AssociateRequest, BatchAck};
+use crossview_api::types::{AssociateRequest, BatchAck, EventsQuery};
 use crossview_core::Batch;
 use crossview_core::Error;
 
@@ -323,20 +325,33 @@ impl LineRun {
     }
 }
 
+/// `GET /v1/scenes/{scene}/events[?boxes=true]`: the scene's results as Server-Sent Events
+/// (`event: frame`, `id: <frame_id>`); with `boxes=true` each event's data also carries the
+/// frame's boxes ([`crossview_api::types::FrameWithBoxes`]), otherwise it is the bare result.
 async fn events(
     State(svc): State<Arc<Service>>,
     Path(scene): Path<String>,
+    query: Result<Query<EventsQuery>, QueryRejection>,
     conn: Option<axum::Extension<super::conn::ConnHandle>>,
 ) -> Result<Response, HttpError> {
+    let Query(query) = query
+        .map_err(|e| Error::invalid("boxes", e.body_text()))
+        .inspect_err(|e| svc.metrics().error(e))?;
     let stall = svc.stall_timeout();
     let results = svc.subscribe(&scene, conn.map(|c| c.0), stall)?;
-    let events = results.map(|r| {
+    let events = results.map(move |r| {
         Ok::<_, Infallible>(match r {
-            Ok(r) => Event::default()
-                .event("frame")
-                .id(r.frame_id.to_string())
-                .json_data(&*r)
-                .unwrap_or_else(|e| Event::default().event("error").data(e.to_string())),
+            Ok(r) => {
+                let frame = Event::default()
+                    .event("frame")
+                    .id(r.result.frame_id.to_string());
+                let data = if query.boxes {
+                    frame.json_data(&*r)
+                } else {
+                    frame.json_data(&r.result)
+                };
+                data.unwrap_or_else(|e| Event::default().event("error").data(e.to_string()))
+            }
             Err(e) => Event::default().event("error").data(e.to_string()),
         })
     });
@@ -357,6 +372,7 @@ pub(crate) fn router(svc: Arc<Service>, max_body: usize) -> Router {
         .route("/v1/scenes/{scene}/batches", post(push_batch))
         .route("/v1/scenes/{scene}/events", get(events))
         .route("/v1/admin/reload", post(reload))
+        .merge(super::viewer::router())
         .layer(DefaultBodyLimit::max(max_body))
         .with_state(svc)
 }

@@ -5,7 +5,8 @@
 //! thread, results broadcast); [`service`] the one domain API; [`grpc`] and [`http`] thin
 //! transports with the error mappings (wire types and conversions: `crossview-api`) ([`push`]: the gRPC `Push`
 //! and `Stream` calls' own request framing, so a bad message is refused alone); [`auth`], [`tls`],
-//! [`metrics`]; [`record`] the recording of accepted batches (`--record`); this module binds them into one listener with graceful shutdown.
+//! [`metrics`]; [`record`] the recording of accepted batches (`--record`); [`viewer`] the live
+//! viewer's web page; this module binds them into one listener with graceful shutdown.
 //!
 //! Tests and the CLI start it the same way: [`Server::load`] (or [`run`]) then
 //! [`Server::serve`] on a bound listener with a shutdown future.
@@ -26,6 +27,7 @@ pub mod scene;
 pub mod service;
 pub mod sync;
 pub mod tls;
+pub mod viewer;
 
 use std::borrow::Cow;
 use std::future::Future;

@@ -15,14 +15,17 @@ use super::conn::ConnHandle;
 use super::metrics::Metrics;
 use super::reload::{ReloadOutcome, Reloader};
 use super::scene::Scene;
-use crossview_api::types::{AssociateRequest, BatchAck, FrameResult, SceneDescription};
+use crossview_api::types::{
+    AssociateRequest, BatchAck, FrameResult, FrameWithBoxes, SceneDescription,
+};
 use crossview_core::Batch;
 use crossview_core::{Error, Result};
 
-/// A stream of one scene's frame results, in frame-id order. It ends after shutdown has
-/// published the last flushed frame, or with `ResourceExhausted` when the subscriber fell
-/// more than the subscriber buffer behind.
-pub(crate) type ResultStream = Pin<Box<dyn Stream<Item = Result<Arc<FrameResult>>> + Send>>;
+/// A stream of one scene's frame results (each with the frame's boxes: `.result` is what
+/// subscribers get unless they asked for the boxes), in frame-id order. It ends after
+/// shutdown has published the last flushed frame, or with `ResourceExhausted` when the
+/// subscriber fell more than the subscriber buffer behind.
+pub(crate) type ResultStream = Pin<Box<dyn Stream<Item = Result<Arc<FrameWithBoxes>>> + Send>>;
 
 /// The service shared by all connections of a server.
 #[derive(Debug)]

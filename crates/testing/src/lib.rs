@@ -1,7 +1,10 @@
 //! The shared fixtures of the integration tests: a small random encoder exported with the
 //! project's exporter (real ONNX file, real ONNX Runtime), a real server on 127.0.0.1:0, gRPC
 //! and HTTP clients, hang guards (never timing assertions), the `crossview` binary runner, the
-//! WILDTRACK data, and [`skip`], which refuses to skip under `CI=true`.
+//! WILDTRACK data, [`skip`], which refuses to skip under `CI=true`, and a real headless
+//! Chromium ([`browser`]).
+
+pub mod browser;
 
 use std::future::Future;
 use std::net::SocketAddr;

@@ -24,7 +24,7 @@ use std::time::{Duration, Instant};
 
 use tokio::sync::{Notify, broadcast, oneshot};
 
-use crossview_api::types::{FrameResult, SceneDescription};
+use crossview_api::types::{FrameResult, FrameWithBoxes, SceneDescription};
 use crossview_core::association::AssociationConfig;
 use crossview_core::tracking::{Tracker, TrackerConfig};
 use crossview_core::{Detection, Encoder, Error, Frame, Result, SceneSpec};
@@ -75,7 +75,7 @@ pub struct Scene {
     close_by: Arc<Mutex<Option<Instant>>>,
     closed: AtomicBool,
     subscribers: Arc<AtomicUsize>,
-    results: Mutex<Option<broadcast::Sender<Arc<FrameResult>>>>,
+    results: Mutex<Option<broadcast::Sender<Arc<FrameWithBoxes>>>>,
     /// Results published so far (for spotting subscribers that stopped reading).
     published: Arc<AtomicU64>,
     /// Wakes the timer task when a new frame starts waiting.
@@ -404,9 +404,10 @@ impl Scene {
         self.published.load(Ordering::Acquire)
     }
 
-    /// A receiver of this scene's frame results from now on, or `Unavailable` after shutdown;
-    /// the guard keeps the subscriber counted (`crossview_subscribers`) until dropped.
-    pub fn subscribe(&self) -> Result<(broadcast::Receiver<Arc<FrameResult>>, SubscriberGuard)> {
+    /// A receiver of this scene's frame results (each with the frame's boxes) from now on, or
+    /// `Unavailable` after shutdown; the guard keeps the subscriber counted
+    /// (`crossview_subscribers`) until dropped.
+    pub fn subscribe(&self) -> Result<(broadcast::Receiver<Arc<FrameWithBoxes>>, SubscriberGuard)> {
         let rx = lock(&self.results)
             .as_ref()
             .map(broadcast::Sender::subscribe)

@@ -13,8 +13,8 @@ use std::time::{Duration, Instant};
 
 use tokio::sync::{broadcast, oneshot};
 
-use crossview_api::convert::identity_out;
-use crossview_api::types::{FrameResult, IdentityOut, ResultStatus};
+use crossview_api::convert::{frame_boxes, identity_out};
+use crossview_api::types::{FrameResult, FrameWithBoxes, IdentityOut, ResultStatus};
 use crossview_core::association::{embed_frame, frame_identities};
 use crossview_core::identity::Identity;
 use crossview_core::tracking::Tracker;
@@ -54,7 +54,8 @@ pub(super) struct Worker {
     pub(super) model: Option<Model>,
     /// What the scene describes as its model: the worker's, updated when a swap is applied.
     pub(super) serving: Arc<Mutex<Option<SceneInfo>>>,
-    pub(super) results: broadcast::Sender<Arc<FrameResult>>,
+    /// Published results, each with the frame's boxes (for `events?boxes=true`).
+    pub(super) results: broadcast::Sender<Arc<FrameWithBoxes>>,
     pub(super) queued: Arc<AtomicUsize>,
     pub(super) metrics: Metrics,
     pub(super) frame_deadline: Duration,
@@ -77,8 +78,11 @@ impl Worker {
                     self.queued.fetch_sub(1, Ordering::AcqRel);
                     // Count first, so a subscriber never sees more results than published.
                     self.published.fetch_add(1, Ordering::AcqRel);
+                    let views = frame_boxes(&self.spec, &e.frame);
                     // No subscriber is not an error.
-                    let _ = self.results.send(Arc::new(r));
+                    let _ = self
+                        .results
+                        .send(Arc::new(FrameWithBoxes { result: r, views }));
                 }
                 Job::Unary {
                     frame,
