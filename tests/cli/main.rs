@@ -6,6 +6,7 @@ mod demo;
 mod eval;
 mod model;
 mod offline_workers;
+mod operator_loop;
 mod record_crash;
 mod serve;
 mod served_identities_wildtrack;

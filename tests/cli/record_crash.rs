@@ -2,44 +2,15 @@
 //! `crossview eval --data DIR` and `crossview train --data DIR` (a torn last line dropped and
 //! counted), and the next start cuts the torn tail off and carries on in a new file.
 
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::Duration;
 
 use crossview_data::read_recordings;
 use crossview_testing::*;
 
-/// Starts `crossview serve` with `args`; returns the child and its address (from the
-/// "serving" log line; the log keeps draining to this test's stderr).
-async fn serve(args: &[&str]) -> (Child, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_crossview"))
-        .args(["serve", "--listen", "127.0.0.1:0"])
-        .args(args)
-        .env("RUST_LOG", "info")
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("start crossview serve");
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    std::thread::spawn(move || {
-        let mut tx = Some(tx);
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            eprintln!("server: {line}");
-            if let Some(i) = line.find("127.0.0.1:")
-                && line.contains("serving")
-                && let Some(tx) = tx.take()
-            {
-                let addr: String = line[i..]
-                    .chars()
-                    .take_while(|c| c.is_ascii_digit() || *c == '.' || *c == ':')
-                    .collect();
-                let _ = tx.send(addr);
-            }
-        }
-    });
-    let addr = guard("server start", rx).await.expect("serving log line");
-    (child, format!("http://{addr}"))
+async fn serve(args: &[&str]) -> (ChildGuard, String) {
+    spawn_serve(env!("CARGO_BIN_EXE_crossview"), args).await
 }
 
 /// The recording files under `dir`, in name order.
@@ -212,11 +183,7 @@ async fn a_killed_recording_server_leaves_data_eval_and_train_read() {
         .await
         .unwrap();
     assert_eq!(r["accepted"].as_u64(), Some(4), "{r}");
-    let term = Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(term.success());
+    signal(&child, "TERM");
     assert!(child.wait().unwrap().success(), "graceful exit");
     let after = files(&scene_dir);
     assert_eq!(after.len(), on_disk.len() + 1, "{after:?}");

@@ -113,8 +113,15 @@ async fn unary_association_over_grpc_and_http() {
     assert_eq!(s.cameras.len(), 3);
     assert_eq!(s.cameras[1].width, 1280);
     // The metadata's version and the file's content hash: `test-1@` + 12 hex digits.
-    let hash = s.model_version.strip_prefix("test-1@").expect("VERSION@HASH");
-    assert!(hash.len() == 12 && hash.chars().all(|c| c.is_ascii_hexdigit()), "{}", s.model_version);
+    let hash = s
+        .model_version
+        .strip_prefix("test-1@")
+        .expect("VERSION@HASH");
+    assert!(
+        hash.len() == 12 && hash.chars().all(|c| c.is_ascii_hexdigit()),
+        "{}",
+        s.model_version
+    );
     assert!((s.threshold - 0.1).abs() < 1e-6);
     let list: serde_json::Value = http
         .get(server.url("/v1/scenes"))

@@ -102,9 +102,9 @@ impl CameraBox {
     /// The box seen again at `bbox`; its velocity follows the observed motion by `weight`.
     fn observe(&mut self, bbox: [f32; 4], weight: f32) {
         let k = (self.unseen + 1) as f32;
-        for i in 0..4 {
-            let moved = (bbox[i] - self.bbox[i]) / k;
-            self.velocity[i] += weight * (moved - self.velocity[i]);
+        for ((v, new), old) in self.velocity.iter_mut().zip(bbox).zip(self.bbox) {
+            let moved = (new - old) / k;
+            *v += weight * (moved - *v);
         }
         self.bbox = bbox;
         self.unseen = 0;

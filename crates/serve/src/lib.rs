@@ -129,7 +129,11 @@ impl Server {
             }
         }
         let recorder = match &config.record {
-            Some(rc) => Some(record::Recorder::start(rc.clone(), &specs, metrics.clone())?),
+            Some(rc) => Some(record::Recorder::start(
+                rc.clone(),
+                &specs,
+                metrics.clone(),
+            )?),
             None => None,
         };
         let mut started = Vec::new();

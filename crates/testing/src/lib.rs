@@ -326,3 +326,74 @@ pub fn run_crossview(bin: &str, args: &[&str], env: &[(&str, &str)]) -> String {
     );
     String::from_utf8(out.stdout).expect("UTF-8 output")
 }
+
+/// A child process killed when dropped, so a failing test leaves no server behind.
+pub struct ChildGuard(pub std::process::Child);
+
+impl std::ops::Deref for ChildGuard {
+    type Target = std::process::Child;
+    fn deref(&self) -> &Self::Target {
+        &self.0
+    }
+}
+
+impl std::ops::DerefMut for ChildGuard {
+    fn deref_mut(&mut self) -> &mut Self::Target {
+        &mut self.0
+    }
+}
+
+impl Drop for ChildGuard {
+    fn drop(&mut self) {
+        if let Ok(None) = self.0.try_wait() {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+}
+
+/// A `crossview serve` child process on 127.0.0.1:0 with `args`; returns the child and its
+/// base URL (from the "serving" log line; the log keeps draining to the test's stderr).
+pub async fn spawn_serve(bin: &str, args: &[&str]) -> (ChildGuard, String) {
+    use std::io::{BufRead, BufReader};
+    let mut child = ChildGuard(
+        std::process::Command::new(bin)
+            .args(["serve", "--listen", "127.0.0.1:0"])
+            .args(args)
+            .env("RUST_LOG", "info")
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .expect("start crossview serve"),
+    );
+    let stderr = child.stderr.take().unwrap();
+    let (tx, rx) = oneshot::channel();
+    std::thread::spawn(move || {
+        let mut tx = Some(tx);
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            eprintln!("server: {line}");
+            if let Some(i) = line.find("127.0.0.1:")
+                && line.contains("serving")
+                && let Some(tx) = tx.take()
+            {
+                let addr: String = line[i..]
+                    .chars()
+                    .take_while(|c| c.is_ascii_digit() || *c == '.' || *c == ':')
+                    .collect();
+                let _ = tx.send(addr);
+            }
+        }
+    });
+    let addr = guard("server start", rx).await.expect("serving log line");
+    (child, format!("http://{addr}"))
+}
+
+/// Sends signal `name` (`HUP`, `TERM`, ...) to `child` with the system's `kill`.
+pub fn signal(child: &std::process::Child, name: &str) {
+    let ok = std::process::Command::new("kill")
+        .args([format!("-{name}"), child.id().to_string()])
+        .status()
+        .expect("run kill")
+        .success();
+    assert!(ok, "kill -{name} {}", child.id());
+}
