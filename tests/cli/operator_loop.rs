@@ -143,29 +143,9 @@ async fn record_train_and_swap_in_a_model_for_a_new_camera_setup() {
         seen.values()
             .all(|r| r.status == pb::ResultStatus::NoModel as i32 && r.identities.is_empty())
     );
-    let http = reqwest::Client::new();
     let batches = first.batches().count() as f64;
-    guard("recorded", async {
-        loop {
-            let m = http
-                .get(format!("{base}/metrics"))
-                .send()
-                .await
-                .unwrap()
-                .text()
-                .await
-                .unwrap();
-            if metric(
-                &m,
-                &format!("crossview_record_batches_total{{scene=\"{SCENE}\"}}"),
-            ) >= batches
-            {
-                break;
-            }
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    })
-    .await;
+    let recorded = format!("crossview_record_batches_total{{scene=\"{SCENE}\"}}");
+    wait_for_metric(&base, &recorded, batches).await;
 
     // 2. Train on the recorded directory: the default recipe, shortened, no labels.
     let trained = tmp.path().join("trained.onnx");

@@ -4,7 +4,6 @@
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
-use std::time::Duration;
 
 use crossview_data::read_recordings;
 use crossview_testing::*;
@@ -77,22 +76,11 @@ async fn a_killed_recording_server_leaves_data_eval_and_train_read() {
         r["results"][0]
     );
     // Every accepted batch has reached the files (the kernel) before the kill.
-    guard("recorded", async {
-        loop {
-            let m = http
-                .get(format!("{base}/metrics"))
-                .send()
-                .await
-                .unwrap()
-                .text()
-                .await
-                .unwrap();
-            if metric(&m, "crossview_record_batches_total{scene=\"demo\"}") >= batches as f64 {
-                break;
-            }
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    })
+    wait_for_metric(
+        &base,
+        "crossview_record_batches_total{scene=\"demo\"}",
+        batches as f64,
+    )
     .await;
     child.kill().unwrap(); // SIGKILL
     child.wait().unwrap();

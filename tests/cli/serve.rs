@@ -1,9 +1,6 @@
 //! The `crossview serve` binary: loads a model named on the command line, serves on an
 //! ephemeral port, and on SIGTERM flushes its pending frame to subscribers and exits cleanly.
 
-use std::io::{BufRead, BufReader};
-use std::process::{Command, Stdio};
-
 use crossview_testing::*;
 use futures::StreamExt;
 
@@ -11,35 +8,12 @@ use futures::StreamExt;
 async fn binary_serves_and_flushes_on_sigterm() {
     let dir = tempfile::tempdir().unwrap();
     let model = export_model(dir.path(), "lab");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_crossview"))
-        .args(["serve", "--listen", "127.0.0.1:0", "--sync-timeout", "600s"])
-        .arg("--model")
-        .arg(format!("street={}", model.display()))
-        .env("RUST_LOG", "info")
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("start crossview serve");
-    let stderr = child.stderr.take().unwrap();
-    // The address is in the "serving" log line; keep draining the log afterwards.
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    std::thread::spawn(move || {
-        let mut tx = Some(tx);
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            eprintln!("server: {line}");
-            if let Some(i) = line.find("127.0.0.1:")
-                && line.contains("serving")
-                && let Some(tx) = tx.take()
-            {
-                let addr: String = line[i..]
-                    .chars()
-                    .take_while(|c| c.is_ascii_digit() || *c == '.' || *c == ':')
-                    .collect();
-                let _ = tx.send(addr);
-            }
-        }
-    });
-    let addr = guard("server start", rx).await.expect("serving log line");
-    let base = format!("http://{addr}");
+    let model_arg = format!("street={}", model.display());
+    let (mut child, base) = spawn_serve(
+        env!("CARGO_BIN_EXE_crossview"),
+        &["--sync-timeout", "600s", "--model", &model_arg],
+    )
+    .await;
 
     let http = reqwest::Client::new();
     let scenes: serde_json::Value = http
@@ -65,11 +39,7 @@ async fn binary_serves_and_flushes_on_sigterm() {
         .unwrap();
     assert_eq!(r.status(), 202);
 
-    let kill = Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(kill.success());
+    signal(&child, "TERM");
 
     let mut text = String::new();
     guard("flushed frame over SSE", async {
@@ -89,7 +59,7 @@ async fn binary_serves_and_flushes_on_sigterm() {
 
     let status = guard(
         "process exit",
-        tokio::task::spawn_blocking(move || child.wait()),
+        tokio::task::spawn_blocking(move || child.0.wait()),
     )
     .await
     .unwrap()

@@ -397,3 +397,26 @@ pub fn signal(child: &std::process::Child, name: &str) {
         .success();
     assert!(ok, "kill -{name} {}", child.id());
 }
+
+/// Waits (bounded by [`guard`]) until the Prometheus metric `name` (with its labels, as
+/// rendered) of the server at `base` reaches `at_least`.
+pub async fn wait_for_metric(base: &str, name: &str, at_least: f64) {
+    let http = reqwest::Client::new();
+    guard(name, async {
+        loop {
+            let text = http
+                .get(format!("{base}/metrics"))
+                .send()
+                .await
+                .unwrap()
+                .text()
+                .await
+                .unwrap();
+            if metric(&text, name) >= at_least {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+}
