@@ -1,8 +1,9 @@
-//! Live model swaps (`POST /v1/admin/reload`, what SIGHUP triggers in the binary) and scenes
-//! declared by their cameras alone: a swap under load loses no accepted batch and associates
-//! none twice, every result names the version that produced it (versions never go back), a
-//! corrupt file or a model for other cameras is refused while the old model keeps serving,
-//! and a scene with no model yet publishes its frames as `no_model` until one is loaded.
+//! Live model swaps (`POST /v1/admin/reload` and gRPC `Reload`, what SIGHUP triggers in the
+//! binary) and scenes declared by their cameras alone: a swap under load loses no accepted
+//! batch and associates none twice, every result names the version that produced it (versions
+//! never go back), a corrupt file or a model for other cameras is refused while the old model
+//! keeps serving, and a scene with no model yet publishes its frames as `no_model` until one
+//! is loaded.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -154,8 +155,20 @@ async fn a_swap_under_load_loses_nothing_and_every_result_names_its_version() {
         scene_version(&http, &server).await.as_deref(),
         Some(new.as_str())
     );
-    // The same file again: nothing to swap.
+    // The same file again: nothing to swap (the gRPC admin call says the same).
     assert_eq!(reload(&http, &server).await["outcome"], "unchanged");
+    let r = server
+        .grpc()
+        .await
+        .reload(pb::ReloadRequest {})
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(r.reloads.len(), 1);
+    assert_eq!(
+        (r.reloads[0].outcome.as_str(), r.reloads[0].version.as_str()),
+        ("unchanged", new.as_str())
+    );
     server.shutdown().await.unwrap();
 }
 

@@ -141,6 +141,16 @@ pub fn result_to_pb(r: &types::FrameResult) -> pb::FrameResult {
     }
 }
 
+/// Reload outcome → protobuf.
+pub fn reload_to_pb(o: types::ReloadOutcome) -> pb::ReloadOutcome {
+    pb::ReloadOutcome {
+        scene: o.scene,
+        outcome: o.outcome,
+        version: o.version.unwrap_or_default(),
+        error: o.error.unwrap_or_default(),
+    }
+}
+
 /// Scene description → protobuf.
 pub fn scene_to_pb(s: types::SceneDescription) -> pb::Scene {
     pb::Scene {

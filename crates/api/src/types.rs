@@ -91,6 +91,22 @@ pub enum ResultStatus {
     Failed,
 }
 
+/// What a reload (`SIGHUP`, `POST /v1/admin/reload`, gRPC `Reload`) did to one scene's model
+/// file.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ReloadOutcome {
+    /// The scene.
+    pub scene: String,
+    /// `swapped`, `unchanged` (the same file), `missing` (no file yet: a scene declared by
+    /// its cameras keeps waiting for one) or `refused` (see `error`).
+    pub outcome: String,
+    /// The version serving the scene after the reload (`None`: no model).
+    pub version: Option<String>,
+    /// Why a file was refused.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+}
+
 /// The acknowledgement of an accepted batch.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct BatchAck {

@@ -7,7 +7,9 @@ use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Code, Request, Response, Status, Streaming};
 
-use crossview_api::convert::{associate_from_pb, batch_from_pb, result_to_pb, scene_to_pb};
+use crossview_api::convert::{
+    associate_from_pb, batch_from_pb, reload_to_pb, result_to_pb, scene_to_pb,
+};
 use crossview_api::pb;
 use crossview_core::Error;
 
@@ -319,6 +321,16 @@ impl pb::association_server::Association for GrpcService {
     ) -> Result<Response<pb::ListScenesResponse>, Status> {
         Ok(Response::new(pb::ListScenesResponse {
             scenes: self.svc.scenes().into_iter().map(scene_to_pb).collect(),
+        }))
+    }
+
+    async fn reload(
+        &self,
+        _request: Request<pb::ReloadRequest>,
+    ) -> Result<Response<pb::ReloadResponse>, Status> {
+        let reloads = self.svc.reload().await;
+        Ok(Response::new(pb::ReloadResponse {
+            reloads: reloads.into_iter().map(reload_to_pb).collect(),
         }))
     }
 

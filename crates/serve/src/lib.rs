@@ -484,6 +484,7 @@ const GRPC_METHODS: &[&str] = &[
     "/crossview.v1.Association/Stream",
     "/crossview.v1.Association/ListScenes",
     "/crossview.v1.Association/GetScene",
+    "/crossview.v1.Association/Reload",
     "/grpc.health.v1.Health/Check",
     "/grpc.health.v1.Health/Watch",
     "/grpc.reflection.v1.ServerReflection/ServerReflectionInfo",

@@ -7,27 +7,12 @@
 //! serving.
 use std::sync::Arc;
 
-use serde::Serialize;
-
 use crate::config::{Limits, ModelSpec};
 use crate::registry;
 use crate::service::Service;
 use crossview_core::Error;
 
-/// What a reload did to one scene.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
-pub struct ReloadOutcome {
-    /// The scene.
-    pub scene: String,
-    /// `swapped`, `unchanged` (the same file), `missing` (no file yet: a scene declared by
-    /// its cameras keeps waiting for one) or `refused` (see `error`).
-    pub outcome: &'static str,
-    /// The version serving the scene after the reload (`None`: no model).
-    pub version: Option<String>,
-    /// Why a file was refused.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub error: Option<String>,
-}
+pub use crossview_api::types::ReloadOutcome;
 
 /// The model files a server reloads, by scene.
 #[derive(Debug, Clone)]
@@ -55,13 +40,13 @@ impl Reloader {
             let outcome = self.reload_one(service, spec).await;
             service
                 .metrics()
-                .model_reload(&outcome.scene, outcome.outcome);
+                .model_reload(&outcome.scene, &outcome.outcome);
             match &outcome.error {
                 Some(e) => {
                     tracing::warn!(scene = %outcome.scene, path = %spec.path.display(), error = %e, "model refused; the old one keeps serving")
                 }
                 None => {
-                    tracing::info!(scene = %outcome.scene, outcome = outcome.outcome, version = outcome.version.as_deref().unwrap_or("none"), "model reload")
+                    tracing::info!(scene = %outcome.scene, outcome = %outcome.outcome, version = outcome.version.as_deref().unwrap_or("none"), "model reload")
                 }
             }
             out.push(outcome);
@@ -75,9 +60,9 @@ impl Reloader {
             Err(e) => return refused(spec, None, &e),
         };
         let current = scene.serving().map(|i| i.version);
-        let result = |outcome, version| ReloadOutcome {
+        let result = |outcome: &str, version| ReloadOutcome {
             scene: spec.name.clone(),
-            outcome,
+            outcome: outcome.to_string(),
             version,
             error: None,
         };
@@ -117,7 +102,7 @@ impl Reloader {
 fn refused(spec: &ModelSpec, version: Option<String>, e: &Error) -> ReloadOutcome {
     ReloadOutcome {
         scene: spec.name.clone(),
-        outcome: "refused",
+        outcome: "refused".to_string(),
         version,
         error: Some(crate::truncate_echo(&e.report()).into_owned()),
     }
