@@ -17,7 +17,7 @@ use crossview_testing::kafka::Broker;
 use crossview_testing::*;
 use rdkafka::config::ClientConfig;
 use rdkafka::consumer::{Consumer, StreamConsumer};
-use rdkafka::message::Message;
+use rdkafka::message::{Headers, Message};
 use rdkafka::producer::{FutureProducer, FutureRecord};
 use serde_json::Value;
 
@@ -259,18 +259,20 @@ async fn one_replica_publishes_every_batch_skips_malformed_and_resumes_after_res
     };
     broker.create_topic("batches", 4);
     broker.create_topic("results", 1);
+    broker.create_topic("dead", 1);
     let bin = env!("CARGO_BIN_EXE_crossview");
     let tmp = tempfile::tempdir().unwrap();
     let lines = simulate(bin, tmp.path(), 20);
     let scenes: Vec<String> = vec!["north".into(), "south".into()];
     let mut args = model_args(&scenes);
     args.extend(kafka_args(&broker, "replicas", "r1"));
+    args.extend(["--kafka-dead-letter-topic".into(), "dead".into()]);
     let (child, base) = serve(bin, &args).await;
     let p = producer(&broker);
     let mut results = Results::new(&broker, "results");
 
     // The first 10 frames of both scenes, with malformed records in the middle of `north`'s
-    // partition: not JSON, not a batch, no key.
+    // partition (not JSON, not a batch, no key) and a rejected one (a scene nobody serves).
     let mut expected = Vec::new();
     for (i, (cam, frame, line)) in lines.iter().enumerate() {
         if *frame >= 10 {
@@ -284,6 +286,7 @@ async fn one_replica_publishes_every_batch_skips_malformed_and_resumes_after_res
             send(&p, "batches", Some("north"), "{not json").await;
             send(&p, "batches", Some("north"), r#"{"scene":"north"}"#).await;
             send(&p, "batches", None, &lines[0].2).await;
+            send(&p, "batches", Some("nowhere"), &lines[0].2).await;
         }
     }
     results.wait_cover(&expected).await;
@@ -300,6 +303,34 @@ async fn one_replica_publishes_every_batch_skips_malformed_and_resumes_after_res
         "{m}"
     );
     assert!(m.contains("crossview_kafka_assigned{"), "{m}");
+    assert_eq!(
+        metric(&m, "crossview_kafka_records_total{outcome=\"rejected\"}"),
+        1.0,
+        "{m}"
+    );
+    // The refused records went to the dead-letter topic, each saying why.
+    let dead: StreamConsumer = ClientConfig::new()
+        .set("bootstrap.servers", &broker.addr)
+        .set("group.id", "checker-dead")
+        .set("auto.offset.reset", "earliest")
+        .create()
+        .unwrap();
+    dead.subscribe(&["dead"]).unwrap();
+    let mut reasons = Vec::new();
+    while reasons.len() < 4 {
+        let m = guard("dead letters", dead.recv()).await.unwrap();
+        let why = m
+            .headers()
+            .and_then(|h| {
+                (0..h.count())
+                    .map(|i| h.get(i))
+                    .find(|h| h.key == "crossview-error")
+                    .and_then(|h| h.value.map(|v| String::from_utf8_lossy(v).to_string()))
+            })
+            .expect("crossview-error header");
+        reasons.push(why);
+    }
+    assert!(reasons.iter().any(|r| r.contains("nowhere")), "{reasons:?}");
     assert!(
         results.duplicates().is_empty(),
         "{:?}",

@@ -115,13 +115,55 @@ impl KafkaConfig {
         c
     }
 
-    fn with_properties(&self, mut c: ClientConfig) -> ClientConfig {
+    /// `c` with the user's properties, less those only the other kind of client knows
+    /// (librdkafka would warn about them).
+    fn with_properties(&self, mut c: ClientConfig, consumer: bool) -> ClientConfig {
         for (k, v) in &self.properties {
-            c.set(k, v);
+            let foreign = if consumer {
+                PRODUCER_ONLY.iter().any(|p| k.starts_with(p))
+            } else {
+                CONSUMER_ONLY.iter().any(|p| k.starts_with(p))
+            };
+            if !foreign {
+                c.set(k, v);
+            }
         }
         c
     }
 }
+
+/// Prefixes of librdkafka properties only a consumer knows.
+const CONSUMER_ONLY: &[&str] = &[
+    "group.",
+    "session.timeout.ms",
+    "heartbeat.interval.ms",
+    "auto.offset.reset",
+    "enable.auto.",
+    "auto.commit.",
+    "max.poll.interval.ms",
+    "partition.assignment.strategy",
+    "fetch.",
+    "isolation.level",
+    "enable.partition.eof",
+    "check.crcs",
+    "queued.",
+    "coordinator.query.interval.ms",
+];
+
+/// Prefixes of librdkafka properties only a producer knows.
+const PRODUCER_ONLY: &[&str] = &[
+    "acks",
+    "request.required.acks",
+    "linger.ms",
+    "compression.",
+    "enable.idempotence",
+    "message.timeout.ms",
+    "delivery.timeout.ms",
+    "queue.buffering.",
+    "batch.",
+    "transactional.id",
+    "partitioner",
+];
 
 /// `<host>-<pid>`: unique enough among the replicas of one group.
 fn default_producer_id() -> String {
@@ -304,13 +346,13 @@ pub fn start(service: Arc<Service>, config: KafkaConfig) -> Result<tokio::task::
         .set("enable.partition.eof", "false")
         .set("statistics.interval.ms", "2000");
     let consumer: StreamConsumer<Context> = config
-        .with_properties(cc)
+        .with_properties(cc, true)
         .create_with_context(context)
         .map_err(|e| Error::invalid("--kafka-brokers", format!("kafka consumer: {e}")))?;
     let mut pc = config.client();
     pc.set("linger.ms", "2");
     let producer: FutureProducer = config
-        .with_properties(pc)
+        .with_properties(pc, false)
         .create()
         .map_err(|e| Error::invalid("--kafka-brokers", format!("kafka producer: {e}")))?;
     consumer
