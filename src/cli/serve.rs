@@ -7,7 +7,9 @@ use clap::Args;
 
 use crossview_core::tracking::TrackerConfig;
 use crossview_serve::config::SceneDecl;
-use crossview_serve::{ConnectionLimits, Limits, ModelSpec, RecordConfig, ServeConfig, TlsConfig};
+use crossview_serve::{
+    ConnectionLimits, KafkaConfig, Limits, ModelSpec, RecordConfig, ServeConfig, TlsConfig,
+};
 
 /// Serve association over gRPC and HTTP JSON on one port.
 #[derive(Debug, Args)]
@@ -145,6 +147,101 @@ pub struct ServeArgs {
     /// is not recorded and counted (`crossview_record_dropped_total`).
     #[arg(long, env = "CROSSVIEW_RECORD_QUEUE_BYTES", default_value_t = RecordConfig::new("").queue_bytes)]
     pub record_queue_bytes: usize,
+    /// Kafka mode (docs/kafka.md); boxed, as these flags are many.
+    #[command(flatten)]
+    pub kafka: Box<KafkaArgs>,
+}
+
+/// `crossview serve`'s Kafka-mode flags.
+#[derive(Debug, Args)]
+pub struct KafkaArgs {
+    /// Kafka mode: bootstrap brokers `host:port[,...]`. With it the server also consumes
+    /// batches (key = scene, value = a batch line as JSON) from --kafka-input-topic and
+    /// produces every frame result to --kafka-output-topic (docs/kafka.md).
+    #[arg(long, env = "CROSSVIEW_KAFKA_BROKERS", requires_all = ["kafka_input_topic", "kafka_output_topic", "kafka_group"])]
+    pub kafka_brokers: Option<String>,
+    /// Kafka input topic (camera batches, key = scene).
+    #[arg(long, env = "CROSSVIEW_KAFKA_INPUT_TOPIC")]
+    pub kafka_input_topic: Option<String>,
+    /// Kafka output topic (frame results, key = scene).
+    #[arg(long, env = "CROSSVIEW_KAFKA_OUTPUT_TOPIC")]
+    pub kafka_output_topic: Option<String>,
+    /// Kafka consumer group the replicas share (each owns whole scenes).
+    #[arg(long, env = "CROSSVIEW_KAFKA_GROUP")]
+    pub kafka_group: Option<String>,
+    /// This replica's `producer.id` in its results (default: host name and process id).
+    #[arg(long, env = "CROSSVIEW_KAFKA_PRODUCER_ID")]
+    pub kafka_producer_id: Option<String>,
+    /// Copy malformed and rejected input records here (with a `crossview-error` header);
+    /// without it they are counted (`crossview_kafka_records_total`) and skipped.
+    #[arg(long, env = "CROSSVIEW_KAFKA_DEAD_LETTER_TOPIC")]
+    pub kafka_dead_letter_topic: Option<String>,
+    /// librdkafka `security.protocol` (plaintext, ssl, sasl_plaintext, sasl_ssl).
+    #[arg(long, env = "CROSSVIEW_KAFKA_SECURITY_PROTOCOL")]
+    pub kafka_security_protocol: Option<String>,
+    /// librdkafka `sasl.mechanism` (PLAIN, SCRAM-SHA-256, SCRAM-SHA-512).
+    #[arg(long, env = "CROSSVIEW_KAFKA_SASL_MECHANISM")]
+    pub kafka_sasl_mechanism: Option<String>,
+    /// librdkafka `sasl.username`.
+    #[arg(long, env = "CROSSVIEW_KAFKA_SASL_USERNAME")]
+    pub kafka_sasl_username: Option<String>,
+    /// librdkafka `sasl.password` (prefer the environment variable).
+    #[arg(long, env = "CROSSVIEW_KAFKA_SASL_PASSWORD", hide_env_values = true)]
+    pub kafka_sasl_password: Option<String>,
+    /// librdkafka `ssl.ca.location`: CA certificates (PEM) to verify the brokers with.
+    #[arg(long, env = "CROSSVIEW_KAFKA_SSL_CA")]
+    pub kafka_ssl_ca: Option<PathBuf>,
+    /// Any further librdkafka property, `KEY=VALUE` (repeatable; `,` separates several in
+    /// the environment), for consumer and producer; overrides the flags above.
+    #[arg(
+        long = "kafka-property",
+        env = "CROSSVIEW_KAFKA_PROPERTIES",
+        value_delimiter = ',',
+        hide_env_values = true
+    )]
+    pub kafka_properties: Vec<String>,
+}
+
+impl KafkaArgs {
+    /// Kafka mode's settings, when --kafka-brokers is given.
+    pub fn to_config(&self) -> anyhow::Result<Option<KafkaConfig>> {
+        let Some(brokers) = &self.kafka_brokers else {
+            return Ok(None);
+        };
+        let need = |v: &Option<String>, flag: &str| {
+            v.clone()
+                .with_context(|| format!("--kafka-brokers needs {flag}"))
+        };
+        let mut k = KafkaConfig::new(
+            brokers,
+            &need(&self.kafka_input_topic, "--kafka-input-topic")?,
+            &need(&self.kafka_output_topic, "--kafka-output-topic")?,
+            &need(&self.kafka_group, "--kafka-group")?,
+        );
+        if let Some(id) = &self.kafka_producer_id {
+            k.producer_id = id.clone();
+        }
+        k.dead_letter_topic = self.kafka_dead_letter_topic.clone();
+        let named = [
+            ("security.protocol", &self.kafka_security_protocol),
+            ("sasl.mechanism", &self.kafka_sasl_mechanism),
+            ("sasl.username", &self.kafka_sasl_username),
+            ("sasl.password", &self.kafka_sasl_password),
+        ];
+        for (key, v) in named {
+            if let Some(v) = v {
+                k.properties.push((key.to_string(), v.clone()));
+            }
+        }
+        if let Some(ca) = &self.kafka_ssl_ca {
+            k.properties
+                .push(("ssl.ca.location".into(), ca.display().to_string()));
+        }
+        for p in &self.kafka_properties {
+            k.properties.push(KafkaConfig::parse_property(p)?);
+        }
+        Ok(Some(k))
+    }
 }
 
 /// Parses `250ms`, `2s`, `1.5s`, `10m` or a bare number of milliseconds.
@@ -242,6 +339,7 @@ impl ServeArgs {
                 max_bytes: self.record_max_bytes,
                 queue_bytes: self.record_queue_bytes,
             }),
+            kafka: self.kafka.to_config()?,
         })
     }
 }

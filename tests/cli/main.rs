@@ -4,6 +4,7 @@
 
 mod demo;
 mod eval;
+mod kafka;
 mod model;
 mod offline_workers;
 mod operator_loop;

@@ -255,6 +255,8 @@ pub struct ServeConfig {
     pub tracker: Option<TrackerConfig>,
     /// Record every accepted batch ([`super::record`]) when set.
     pub record: Option<super::record::RecordConfig>,
+    /// Kafka mode ([`super::kafka`]) beside gRPC and HTTP, when set.
+    pub kafka: Option<super::kafka::KafkaConfig>,
 }
 
 impl std::fmt::Debug for ServeConfig {
@@ -275,6 +277,7 @@ impl std::fmt::Debug for ServeConfig {
             .field("shutdown_grace", &self.shutdown_grace)
             .field("tracker", &self.tracker)
             .field("record", &self.record)
+            .field("kafka", &self.kafka)
             .finish()
     }
 }
@@ -294,6 +297,7 @@ impl Default for ServeConfig {
             shutdown_grace: Duration::from_secs(10),
             tracker: Some(TrackerConfig::default()),
             record: None,
+            kafka: None,
         }
     }
 }

@@ -6,7 +6,7 @@
 //! transports with the error mappings (wire types and conversions: `crossview-api`) ([`push`]: the gRPC `Push`
 //! and `Stream` calls' own request framing, so a bad message is refused alone); [`auth`], [`tls`],
 //! [`metrics`]; [`record`] the recording of accepted batches (`--record`); [`viewer`] the live
-//! viewer's web page; this module binds them into one listener with graceful shutdown.
+//! viewer's web page; [`kafka`] Kafka mode (consume batches, produce results); this module binds them into one listener with graceful shutdown.
 //!
 //! Tests and the CLI start it the same way: [`Server::load`] (or [`run`]) then
 //! [`Server::serve`] on a bound listener with a shutdown future.
@@ -18,6 +18,7 @@ pub(crate) mod conn;
 pub mod cost;
 pub mod grpc;
 pub mod http;
+pub mod kafka;
 pub mod metrics;
 pub mod push;
 pub mod record;
@@ -45,6 +46,7 @@ use tokio::net::TcpListener;
 use tower::ServiceExt;
 
 pub use config::{ConnectionLimits, Limits, ModelSpec, ServeConfig, TlsConfig};
+pub use kafka::KafkaConfig;
 pub use record::RecordConfig;
 pub use scene::{Scene, SceneInfo};
 pub use service::Service;
@@ -195,6 +197,10 @@ impl Server {
         for scene in self.service.scene_list() {
             spawn_timer(scene, self.service.shutting_down());
         }
+        let kafka = match &self.config.kafka {
+            Some(k) => Some(kafka::start(self.service.clone(), k.clone())?),
+            None => None,
+        };
         #[cfg(unix)]
         if self.config.reload_on_sighup {
             reload::spawn_on_sighup(self.service.clone())?;
@@ -304,6 +310,13 @@ impl Server {
         })
         .await
         .map_err(|e| Error::internal_from("shutdown task failed", e))?;
+        if let Some(task) = kafka {
+            // The flushed results are produced and their offsets committed.
+            let until = deadline.max(Instant::now() + Duration::from_secs(5));
+            if tokio::time::timeout_at(until.into(), task).await.is_err() {
+                tracing::warn!("shutdown: kafka results not all produced in the grace period");
+            }
+        }
         tracing::info!("shutdown: frames flushed, closing connections");
         let _ = stop_tx.send(true);
         let until = deadline.max(Instant::now() + Duration::from_millis(200));

@@ -169,6 +169,61 @@ impl Metrics {
             .set(n as f64);
     }
 
+    /// One Kafka input record and what became of it (`accepted`, `malformed`: not a batch
+    /// line keyed by a scene; `rejected`: refused by the scene, e.g. unknown scene or late).
+    pub(crate) fn kafka_record(&self, outcome: &'static str) {
+        self.inc("crossview_kafka_records_total", &[("outcome", outcome)]);
+    }
+
+    /// One frame result produced to the Kafka output topic (or a failed attempt).
+    pub(crate) fn kafka_produced(&self, ok: bool) {
+        let outcome = if ok { "ok" } else { "error" };
+        self.inc("crossview_kafka_results_total", &[("outcome", outcome)]);
+    }
+
+    /// Whether this replica owns input partition `partition` (1) or not (0).
+    pub(crate) fn kafka_assigned(&self, topic: &str, partition: i32, owned: bool) {
+        let p = partition.to_string();
+        self.recorder
+            .register_gauge(
+                &key(
+                    "crossview_kafka_assigned",
+                    &[("topic", topic), ("partition", &p)],
+                ),
+                &META,
+            )
+            .set(if owned { 1.0 } else { 0.0 });
+    }
+
+    /// The next offset committed for an input partition.
+    pub(crate) fn kafka_committed(&self, topic: &str, partition: i32, offset: i64) {
+        let p = partition.to_string();
+        self.recorder
+            .register_gauge(
+                &key(
+                    "crossview_kafka_committed_offset",
+                    &[("topic", topic), ("partition", &p)],
+                ),
+                &META,
+            )
+            .set(offset as f64);
+    }
+
+    /// Consumer lag of an owned input partition (librdkafka's statistics: high watermark
+    /// minus the consumer's position).
+    pub(crate) fn kafka_lag(&self, topic: &str, partition: i32, lag: i64) {
+        let p = partition.to_string();
+        self.recorder
+            .register_gauge(
+                &key(
+                    "crossview_kafka_consumer_lag",
+                    &[("topic", topic), ("partition", &p)],
+                ),
+                &META,
+            )
+            .set(lag.max(0) as f64);
+    }
+
     /// Live result subscribers (gRPC Subscribe/Stream and SSE) of a scene.
     pub fn subscribers(&self, scene: &str, n: usize) {
         self.recorder

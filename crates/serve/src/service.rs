@@ -33,6 +33,8 @@ pub struct Service {
     scenes: BTreeMap<String, Arc<Scene>>,
     metrics: Metrics,
     ready: AtomicBool,
+    /// False while a Kafka consumer has not yet joined its group (see [`crate::kafka`]).
+    consumer_ready: AtomicBool,
     shutdown: watch::Sender<bool>,
     stall_timeout: Option<Duration>,
     reloader: Option<Reloader>,
@@ -49,6 +51,7 @@ impl Service {
                 .collect(),
             metrics,
             ready: AtomicBool::new(true),
+            consumer_ready: AtomicBool::new(true),
             shutdown,
             stall_timeout: None,
             reloader: None,
@@ -193,7 +196,26 @@ impl Service {
 
     /// True while models are loaded and the service accepts work.
     pub(crate) fn is_ready(&self) -> bool {
+        self.ready.load(Ordering::Acquire) && self.consumer_ready.load(Ordering::Acquire)
+    }
+
+    /// True until shutdown begins (whatever a Kafka consumer's state).
+    pub(crate) fn accepting(&self) -> bool {
         self.ready.load(Ordering::Acquire)
+    }
+
+    /// Readiness as far as the Kafka consumer goes (false until it joined its group).
+    pub(crate) fn set_consumer_ready(&self, ready: bool) {
+        self.consumer_ready.store(ready, Ordering::Release);
+    }
+
+    /// The smallest per-subscriber result buffer of the scenes.
+    pub(crate) fn subscriber_buffer(&self) -> usize {
+        self.scenes
+            .values()
+            .map(|s| s.limits().subscriber_buffer)
+            .min()
+            .unwrap_or(1)
     }
 
     /// Resolves once shutdown has begun (for ending long-lived request streams).

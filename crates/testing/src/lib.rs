@@ -5,6 +5,7 @@
 //! Chromium ([`browser`]).
 
 pub mod browser;
+pub mod kafka;
 
 use std::future::Future;
 use std::net::SocketAddr;
