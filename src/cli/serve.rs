@@ -9,6 +9,7 @@ use crossview_core::tracking::TrackerConfig;
 use crossview_serve::config::SceneDecl;
 use crossview_serve::{
     ConnectionLimits, KafkaConfig, Limits, ModelSpec, RecordConfig, ServeConfig, TlsConfig,
+    ValueFormat,
 };
 
 /// Serve association over gRPC and HTTP JSON on one port.
@@ -200,6 +201,18 @@ pub struct KafkaArgs {
         hide_env_values = true
     )]
     pub kafka_properties: Vec<String>,
+    /// Encoding of input values without a `content-type` header: `json` (a batch line) or
+    /// `protobuf` (`crossview.v1.Batch`).
+    #[arg(long, env = "CROSSVIEW_KAFKA_INPUT_FORMAT", default_value = "json", value_parser = parse_format)]
+    pub kafka_input_format: ValueFormat,
+    /// Encoding of the results: `json` (`FrameResult` plus `producer`) or `protobuf`
+    /// (`crossview.v1.FrameResult`; producer in the headers).
+    #[arg(long, env = "CROSSVIEW_KAFKA_OUTPUT_FORMAT", default_value = "json", value_parser = parse_format)]
+    pub kafka_output_format: ValueFormat,
+}
+
+fn parse_format(s: &str) -> Result<ValueFormat, String> {
+    s.parse().map_err(|e: crossview_core::Error| e.to_string())
 }
 
 impl KafkaArgs {
@@ -222,6 +235,8 @@ impl KafkaArgs {
             k.producer_id = id.clone();
         }
         k.dead_letter_topic = self.kafka_dead_letter_topic.clone();
+        k.input_format = self.kafka_input_format;
+        k.output_format = self.kafka_output_format;
         let named = [
             ("security.protocol", &self.kafka_security_protocol),
             ("sasl.mechanism", &self.kafka_sasl_mechanism),

@@ -17,7 +17,7 @@ use crossview_testing::kafka::Broker;
 use crossview_testing::*;
 use rdkafka::config::ClientConfig;
 use rdkafka::consumer::{Consumer, StreamConsumer};
-use rdkafka::message::{Headers, Message};
+use rdkafka::message::{Header, Headers, Message, OwnedHeaders};
 use rdkafka::producer::{FutureProducer, FutureRecord};
 use serde_json::Value;
 
@@ -66,9 +66,26 @@ fn producer(broker: &Broker) -> FutureProducer {
 }
 
 async fn send(p: &FutureProducer, topic: &str, key: Option<&str>, value: &str) {
-    let mut r = FutureRecord::<str, str>::to(topic).payload(value);
+    send_with(p, topic, key, value.as_bytes(), None).await
+}
+
+/// Produces one record, with a `content-type` header when given.
+async fn send_with(
+    p: &FutureProducer,
+    topic: &str,
+    key: Option<&str>,
+    value: &[u8],
+    content_type: Option<&str>,
+) {
+    let mut r = FutureRecord::<str, [u8]>::to(topic).payload(value);
     if let Some(k) = key {
         r = r.key(k);
+    }
+    if let Some(ct) = content_type {
+        r = r.headers(OwnedHeaders::new().insert(Header {
+            key: "content-type",
+            value: Some(ct),
+        }));
     }
     guard("produce", p.send(r, Duration::from_secs(20)))
         .await
@@ -158,7 +175,13 @@ impl Results {
         let until = tokio::time::Instant::now() + d;
         while let Ok(m) = tokio::time::timeout_at(until, self.consumer.recv()).await {
             let m = m.unwrap();
-            let v: Value = serde_json::from_slice(m.payload().unwrap()).unwrap();
+            let v = match header(&m, "content-type").as_deref() {
+                Some("application/x-protobuf") => protobuf_result(&m),
+                ct => {
+                    assert_eq!(ct, Some("application/json"));
+                    serde_json::from_slice(m.payload().unwrap()).unwrap()
+                }
+            };
             assert_eq!(
                 m.key().map(|k| String::from_utf8_lossy(k).to_string()),
                 v["scene"].as_str().map(String::from),
@@ -188,6 +211,32 @@ impl Results {
         all.retain(|_, v| v.len() > 1);
         all
     }
+}
+
+/// The value of header `key` of `m`, if any.
+fn header<M: Message>(m: &M, key: &str) -> Option<String> {
+    let h = m.headers()?;
+    (0..h.count())
+        .map(|i| h.get(i))
+        .find(|h| h.key == key)
+        .and_then(|h| h.value.map(|v| String::from_utf8_lossy(v).to_string()))
+}
+
+/// A protobuf `FrameResult` record as the JSON fields the checks read (producer from the
+/// headers).
+fn protobuf_result<M: Message>(m: &M) -> Value {
+    use prost::Message as _;
+    let r = crossview_api::pb::FrameResult::decode(m.payload().unwrap()).expect("a FrameResult");
+    serde_json::json!({
+        "scene": r.scene,
+        "frame_id": r.frame_id,
+        "missing_cameras": r.missing_cameras,
+        "identities": r.identities.len(),
+        "producer": {
+            "id": header(m, "crossview-producer").expect("crossview-producer header"),
+            "epoch": header(m, "crossview-epoch").and_then(|e| e.parse::<u64>().ok()).expect("crossview-epoch header"),
+        },
+    })
 }
 
 /// The cameras of the simulator's `square4` preset (`models/demo.onnx`'s scene).
@@ -319,15 +368,7 @@ async fn one_replica_publishes_every_batch_skips_malformed_and_resumes_after_res
     let mut reasons = Vec::new();
     while reasons.len() < 4 {
         let m = guard("dead letters", dead.recv()).await.unwrap();
-        let why = m
-            .headers()
-            .and_then(|h| {
-                (0..h.count())
-                    .map(|i| h.get(i))
-                    .find(|h| h.key == "crossview-error")
-                    .and_then(|h| h.value.map(|v| String::from_utf8_lossy(v).to_string()))
-            })
-            .expect("crossview-error header");
+        let why = header(&m, "crossview-error").expect("crossview-error header");
         reasons.push(why);
     }
     assert!(reasons.iter().any(|r| r.contains("nowhere")), "{reasons:?}");
@@ -473,4 +514,74 @@ async fn two_replicas_share_scenes_and_one_killed_hands_them_over() {
             "{s}: its last frame was not published by the surviving replica"
         );
     }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn protobuf_batches_in_and_protobuf_results_out() {
+    let Some(broker) = Broker::start() else {
+        return;
+    };
+    broker.create_topic("batches", 2);
+    broker.create_topic("results", 1);
+    let bin = env!("CARGO_BIN_EXE_crossview");
+    let tmp = tempfile::tempdir().unwrap();
+    let lines = simulate(bin, tmp.path(), 6);
+    let scenes: Vec<String> = vec!["east".into()];
+    let mut args = model_args(&scenes);
+    args.extend(kafka_args(&broker, "proto", "p1"));
+    args.extend(["--kafka-output-format".into(), "protobuf".into()]);
+    let (_child, base) = serve(bin, &args).await;
+    let p = producer(&broker);
+    let mut results = Results::new(&broker, "results");
+    // Even frames as protobuf `Batch` (named by the header), odd ones as JSON lines without
+    // a header (the default input format); one record with a content type nobody reads.
+    let mut expected = Vec::new();
+    for (cam, frame, line) in &lines {
+        let batch: crossview_core::Batch = serde_json::from_str(line).unwrap();
+        if frame % 2 == 0 {
+            use prost::Message as _;
+            let pb = crossview_api::convert::batch_to_pb("east", &batch).encode_to_vec();
+            send_with(
+                &p,
+                "batches",
+                Some("east"),
+                &pb,
+                Some("application/x-protobuf"),
+            )
+            .await;
+        } else {
+            send(&p, "batches", Some("east"), line).await;
+        }
+        expected.push(("east".to_string(), cam.clone(), *frame));
+        if expected.len() == 3 {
+            send_with(
+                &p,
+                "batches",
+                Some("east"),
+                line.as_bytes(),
+                Some("text/csv"),
+            )
+            .await;
+        }
+    }
+    results.wait_cover(&expected).await;
+    assert!(
+        results
+            .seen
+            .iter()
+            .all(|r| r["identities"].as_u64() > Some(0)),
+        "every frame of the clean simulation associates someone"
+    );
+    wait_for_metric(
+        &base,
+        "crossview_kafka_records_total{outcome=\"malformed\"}",
+        1.0,
+    )
+    .await;
+    let m = metrics_text(&base).await;
+    assert_eq!(
+        metric(&m, "crossview_kafka_records_total{outcome=\"accepted\"}"),
+        expected.len() as f64,
+        "{m}"
+    );
 }

@@ -3,10 +3,13 @@
 //! an output topic. Written against the Kafka protocol through librdkafka (`rdkafka`); the
 //! topology and the delivery semantics are in docs/kafka.md.
 //!
-//! Records: key = scene name (UTF-8), value = one SPEC §7 batch line as JSON. The default
-//! partitioner hashes the key, so a scene lives on one partition and the consumer group gives
-//! each replica whole scenes. Results: key = scene, value = the [`FrameResult`] JSON plus
-//! `"producer": {"id", "epoch"}`, also as headers `crossview-producer` / `crossview-epoch`.
+//! Records: key = scene name (UTF-8), value = one SPEC §7 batch line as JSON, or the protobuf
+//! `crossview.v1.Batch` (per record by its `content-type` header, else by
+//! [`KafkaConfig::input_format`]). The default partitioner hashes the key, so a scene lives on
+//! one partition and the consumer group gives each replica whole scenes. Results: key = scene,
+//! value = the `FrameResult` as JSON plus `"producer": {"id", "epoch"}` (or the protobuf
+//! `crossview.v1.FrameResult`), with headers `content-type`, `crossview-producer` and
+//! `crossview-epoch`.
 //!
 //! At-least-once: an input offset is committed only once every batch at or below it is either
 //! in a result whose production the broker acknowledged, or was refused (malformed or rejected:
@@ -31,7 +34,10 @@ use rdkafka::producer::{FutureProducer, FutureRecord};
 use rdkafka::util::Timeout;
 use rdkafka::{ClientContext, Offset, Statistics, TopicPartitionList};
 
+use crossview_api::convert::{batch_from_pb, result_to_pb};
+use crossview_api::pb;
 use crossview_core::{Batch, Error, Result};
+use prost::Message as _;
 
 use crate::metrics::Metrics;
 use crate::service::Service;
@@ -58,6 +64,63 @@ pub struct KafkaConfig {
     /// Most frames with consumed batches not yet in a produced result; consumption pauses
     /// beyond it (kept below the subscriber buffer so results are never dropped).
     pub max_in_flight: usize,
+    /// How input values are encoded when a record has no `content-type` header.
+    pub input_format: ValueFormat,
+    /// How results are encoded.
+    pub output_format: ValueFormat,
+}
+
+/// A record value's encoding, named by the `content-type` header of a record.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum ValueFormat {
+    /// JSON (`application/json`): a SPEC §7 batch line, a `FrameResult` object.
+    #[default]
+    Json,
+    /// Protobuf (`application/x-protobuf`): `crossview.v1.Batch`, `crossview.v1.FrameResult`.
+    Protobuf,
+}
+
+impl ValueFormat {
+    /// The `content-type` header value this format is written with.
+    pub fn content_type(self) -> &'static str {
+        match self {
+            ValueFormat::Json => "application/json",
+            ValueFormat::Protobuf => "application/x-protobuf",
+        }
+    }
+
+    /// The format a `content-type` header names (parameters such as `; charset=utf-8` are
+    /// ignored); `None` for one we do not read.
+    pub fn from_content_type(v: &[u8]) -> Option<Self> {
+        let v = std::str::from_utf8(v).ok()?;
+        let media = v
+            .split(';')
+            .next()
+            .unwrap_or("")
+            .trim()
+            .to_ascii_lowercase();
+        match media.as_str() {
+            "application/json" => Some(ValueFormat::Json),
+            "application/x-protobuf"
+            | "application/protobuf"
+            | "application/vnd.google.protobuf" => Some(ValueFormat::Protobuf),
+            _ => None,
+        }
+    }
+}
+
+impl std::str::FromStr for ValueFormat {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s.to_ascii_lowercase().as_str() {
+            "json" => Ok(ValueFormat::Json),
+            "protobuf" | "proto" => Ok(ValueFormat::Protobuf),
+            _ => Err(Error::invalid(
+                "format",
+                format!("'{}' is not json or protobuf", crate::truncate_echo(s)),
+            )),
+        }
+    }
 }
 
 impl std::fmt::Debug for KafkaConfig {
@@ -79,6 +142,8 @@ impl std::fmt::Debug for KafkaConfig {
             .field("dead_letter_topic", &self.dead_letter_topic)
             .field("properties", &props)
             .field("max_in_flight", &self.max_in_flight)
+            .field("input_format", &self.input_format)
+            .field("output_format", &self.output_format)
             .finish()
     }
 }
@@ -95,6 +160,8 @@ impl KafkaConfig {
             dead_letter_topic: None,
             properties: Vec::new(),
             max_in_flight: 256,
+            input_format: ValueFormat::Json,
+            output_format: ValueFormat::Json,
         }
     }
 
@@ -350,7 +417,7 @@ pub fn start(service: Arc<Service>, config: KafkaConfig) -> Result<tokio::task::
         .create_with_context(context)
         .map_err(|e| Error::invalid("--kafka-brokers", format!("kafka consumer: {e}")))?;
     let mut pc = config.client();
-    pc.set("linger.ms", "2");
+    pc.set("linger.ms", "2").set("enable.idempotence", "true");
     let producer: FutureProducer = config
         .with_properties(pc, false)
         .create()
@@ -419,8 +486,9 @@ impl Kafka {
             };
             let (partition, offset) = (msg.partition(), msg.offset());
             lock(&self.offsets).begin(partition, offset);
+            let format = content_type(&msg).unwrap_or(Ok(self.config.input_format));
             let handled = self
-                .handle(msg.key(), msg.payload(), partition, offset)
+                .handle(msg.key(), msg.payload(), format, partition, offset)
                 .await;
             if let Handled::Stop = handled {
                 break;
@@ -439,10 +507,11 @@ impl Kafka {
         &self,
         key: Option<&[u8]>,
         payload: Option<&[u8]>,
+        format: Result<ValueFormat>,
         partition: i32,
         offset: i64,
     ) -> Handled {
-        let (scene, batch) = match decode(key, payload) {
+        let (scene, batch) = match format.and_then(|f| decode(key, payload, f)) {
             Ok(v) => v,
             Err(e) => {
                 self.metrics().kafka_record("malformed");
@@ -576,24 +645,26 @@ impl Kafka {
         result: &crossview_api::types::FrameResult,
         epoch: u64,
     ) -> bool {
-        let mut value = match serde_json::to_value(result) {
-            Ok(v) => v,
+        let body = match encode_result(
+            result,
+            self.config.output_format,
+            &self.config.producer_id,
+            epoch,
+        ) {
+            Ok(b) => b,
             Err(e) => {
                 tracing::error!(error = %e, "kafka: cannot encode a result");
                 return false;
             }
         };
-        if let Some(obj) = value.as_object_mut() {
-            obj.insert(
-                "producer".into(),
-                serde_json::json!({"id": self.config.producer_id, "epoch": epoch}),
-            );
-        }
-        let body = value.to_string();
         let epoch_s = epoch.to_string();
         let mut attempts = 0;
         loop {
             let headers = OwnedHeaders::new()
+                .insert(Header {
+                    key: "content-type",
+                    value: Some(self.config.output_format.content_type()),
+                })
                 .insert(Header {
                     key: "crossview-producer",
                     value: Some(self.config.producer_id.as_bytes()),
@@ -650,8 +721,33 @@ impl Kafka {
     }
 }
 
-/// A record's scene (its key) and batch (its value, a SPEC §7 batch line).
-fn decode(key: Option<&[u8]>, payload: Option<&[u8]>) -> Result<(String, Batch)> {
+/// The format a record's `content-type` header names: `None` without the header, an error
+/// for a type we do not read.
+fn content_type<M: Message>(msg: &M) -> Option<Result<ValueFormat>> {
+    use rdkafka::message::Headers;
+    let headers = msg.headers()?;
+    let h = headers
+        .iter()
+        .find(|h| h.key.eq_ignore_ascii_case("content-type"))?;
+    let v = h.value.unwrap_or_default();
+    Some(ValueFormat::from_content_type(v).ok_or_else(|| {
+        Error::invalid(
+            "content-type",
+            format!(
+                "'{}' is not application/json or application/x-protobuf",
+                crate::truncate_echo(&String::from_utf8_lossy(v))
+            ),
+        )
+    }))
+}
+
+/// A record's scene (its key) and batch (its value: a SPEC §7 batch line, or a protobuf
+/// `Batch` whose `scene`, if set, must equal the key).
+fn decode(
+    key: Option<&[u8]>,
+    payload: Option<&[u8]>,
+    format: ValueFormat,
+) -> Result<(String, Batch)> {
     let scene = key
         .filter(|k| !k.is_empty())
         .ok_or_else(|| Error::invalid("key", "a record needs its scene name as key"))?;
@@ -659,9 +755,51 @@ fn decode(key: Option<&[u8]>, payload: Option<&[u8]>) -> Result<(String, Batch)>
         .map_err(|_| Error::invalid("key", "the scene name is not UTF-8"))?
         .to_string();
     let value = payload.ok_or_else(|| Error::invalid("value", "empty record"))?;
-    let batch: Batch =
-        serde_json::from_slice(value).map_err(|e| Error::invalid("value", e.to_string()))?;
+    let batch = match format {
+        ValueFormat::Json => {
+            serde_json::from_slice(value).map_err(|e| Error::invalid("value", e.to_string()))?
+        }
+        ValueFormat::Protobuf => {
+            let pb = pb::Batch::decode(value)
+                .map_err(|e| Error::invalid("value", format!("not a protobuf Batch: {e}")))?;
+            if !pb.scene.is_empty() && pb.scene != scene {
+                return Err(Error::invalid(
+                    "scene",
+                    format!(
+                        "the batch names scene '{}' but the record key is '{}'",
+                        crate::truncate_echo(&pb.scene),
+                        crate::truncate_echo(&scene)
+                    ),
+                ));
+            }
+            batch_from_pb(pb)?.1
+        }
+    };
     Ok((scene, batch))
+}
+
+/// A result's record value: JSON with `producer` added, or the protobuf `FrameResult` (whose
+/// producer is in the headers only).
+fn encode_result(
+    result: &crossview_api::types::FrameResult,
+    format: ValueFormat,
+    producer: &str,
+    epoch: u64,
+) -> Result<Vec<u8>> {
+    match format {
+        ValueFormat::Protobuf => Ok(result_to_pb(result).encode_to_vec()),
+        ValueFormat::Json => {
+            let mut value = serde_json::to_value(result)
+                .map_err(|e| Error::internal_from("encode result", e))?;
+            if let Some(obj) = value.as_object_mut() {
+                obj.insert(
+                    "producer".into(),
+                    serde_json::json!({"id": producer, "epoch": epoch}),
+                );
+            }
+            Ok(value.to_string().into_bytes())
+        }
+    }
 }
 
 #[cfg(test)]
@@ -689,17 +827,56 @@ mod tests {
     #[test]
     fn records_need_a_scene_key_and_a_batch_line() {
         let line = br#"{"camera":"c0","frame_id":3,"detections":[]}"#;
-        let (scene, b) = decode(Some(b"lab"), Some(line)).unwrap();
+        let json = ValueFormat::Json;
+        let (scene, b) = decode(Some(b"lab"), Some(line), json).unwrap();
         assert_eq!((scene.as_str(), b.frame_id), ("lab", 3));
-        assert!(decode(None, Some(line)).is_err());
-        assert!(decode(Some(&[0xff]), Some(line)).is_err());
-        assert!(decode(Some(b"lab"), Some(b"{not json")).is_err());
-        assert!(decode(Some(b"lab"), None).is_err());
+        assert!(decode(None, Some(line), json).is_err());
+        assert!(decode(Some(&[0xff]), Some(line), json).is_err());
+        assert!(decode(Some(b"lab"), Some(b"{not json"), json).is_err());
+        assert!(decode(Some(b"lab"), None, json).is_err());
         let p = KafkaConfig::parse_property("sasl.password=x=y").unwrap();
         assert_eq!(p, ("sasl.password".into(), "x=y".into()));
         assert!(KafkaConfig::parse_property("novalue").is_err());
         let mut c = KafkaConfig::new("b:9092", "in", "out", "g");
         c.properties.push(p);
         assert!(!format!("{c:?}").contains("x=y"));
+    }
+
+    #[test]
+    fn protobuf_values_decode_and_must_agree_with_the_key() {
+        let batch = Batch {
+            camera: "c0".into(),
+            frame_id: 7,
+            detections: vec![],
+        };
+        let proto = ValueFormat::Protobuf;
+        let bytes = crossview_api::convert::batch_to_pb("lab", &batch).encode_to_vec();
+        let (scene, b) = decode(Some(b"lab"), Some(&bytes), proto).unwrap();
+        assert_eq!(
+            (scene.as_str(), b.camera.as_str(), b.frame_id),
+            ("lab", "c0", 7)
+        );
+        let unnamed = crossview_api::convert::batch_to_pb("", &batch).encode_to_vec();
+        assert_eq!(
+            decode(Some(b"lab"), Some(&unnamed), proto).unwrap().0,
+            "lab"
+        );
+        assert!(decode(Some(b"other"), Some(&bytes), proto).is_err());
+        assert!(decode(Some(b"lab"), Some(b"\xff\xff\xff"), proto).is_err());
+        // A JSON line read as protobuf (and the other way round) is malformed, not a panic.
+        let line = br#"{"camera":"c0","frame_id":3,"detections":[]}"#;
+        assert!(decode(Some(b"lab"), Some(line), proto).is_err());
+        assert!(decode(Some(b"lab"), Some(&bytes), ValueFormat::Json).is_err());
+        assert_eq!(
+            ValueFormat::from_content_type(b"application/x-protobuf"),
+            Some(proto)
+        );
+        assert_eq!(
+            ValueFormat::from_content_type(b"Application/JSON; charset=utf-8"),
+            Some(ValueFormat::Json)
+        );
+        assert_eq!(ValueFormat::from_content_type(b"text/plain"), None);
+        assert_eq!("protobuf".parse::<ValueFormat>().unwrap(), proto);
+        assert!("xml".parse::<ValueFormat>().is_err());
     }
 }

@@ -46,7 +46,7 @@ use tokio::net::TcpListener;
 use tower::ServiceExt;
 
 pub use config::{ConnectionLimits, Limits, ModelSpec, ServeConfig, TlsConfig};
-pub use kafka::KafkaConfig;
+pub use kafka::{KafkaConfig, ValueFormat};
 pub use record::RecordConfig;
 pub use scene::{Scene, SceneInfo};
 pub use service::Service;
