@@ -29,7 +29,7 @@ lint:
 fmt:
 	cargo fmt --all
 
-.PHONY: loadtest loadtest-check smoke
+.PHONY: loadtest loadtest-check smoke deploy-check
 
 ## loadtest: build the load generator (target/release/crossview-loadtest; see loadtest/README.md)
 loadtest:
@@ -40,6 +40,12 @@ loadtest-check:
 	cargo fmt -p crossview-loadtest --check
 	cargo clippy -p crossview-loadtest --all-targets -- -D warnings
 	cargo test -p crossview-loadtest
+
+## deploy-check: validate deploy/k8s/*.yaml (Kubernetes 1.37 schemas, strict) and
+## deploy/docker-compose.yml (compose-spec) without a cluster or an engine; installs its pinned
+## validators into .cache/deploy-venv from PyPI the first time (scripts/check-deploy.sh)
+deploy-check:
+	bash scripts/check-deploy.sh
 
 ## smoke: build the container images and run the compose stack end to end under podman
 ## (slow, needs root; not part of CI; see deploy/README.md)
