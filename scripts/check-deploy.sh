@@ -107,7 +107,7 @@ for path in sorted(glob.glob(os.path.join(kdir, "*.yaml"))):
 # compose: env names of the services running `serve`, and the kafka profile.
 compose = load_all("deploy/docker-compose.yml")[0]
 services = compose.get("services", {})
-kafka_services = {"broker", "kafka-topics", "replica-a", "replica-b"}
+kafka_services = {"broker", "kafka-topics", "replica-a", "replica-b", "kafka-replay"}
 for name in sorted(kafka_services - services.keys()):
     err(f"deploy/docker-compose.yml: no service {name} (kafka profile)")
 for name, svc in services.items():

@@ -12,6 +12,18 @@ pub enum Transport {
     Grpc,
     /// `POST /v1/scenes/{scene}/batches` + server-sent events.
     Http,
+    /// Produce to the replicas' input topic, read results from their output topic
+    /// (`crossview serve --kafka-*`, docs/kafka.md).
+    Kafka,
+}
+
+/// How batches are encoded on the Kafka input topic (named by a `content-type` header).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum KafkaFormat {
+    /// A SPEC §7 batch line (`application/json`).
+    Json,
+    /// A protobuf `crossview.v1.Batch` (`application/x-protobuf`).
+    Protobuf,
 }
 
 /// How frame ids are chosen.
@@ -26,7 +38,7 @@ pub enum FrameIds {
 /// Replays a crossview recording against a running server at a fixed rate (open loop) or as
 /// fast as possible, matches every frame result to its pushes and reports throughput,
 /// push-to-result latency, errors and lost frames. Only loopback targets unless --allow-host.
-#[derive(Debug, Parser)]
+#[derive(Debug, Clone, Parser)]
 #[command(name = "crossview-loadtest", version, about)]
 pub struct Args {
     /// Server base URL (gRPC and HTTP share one port).
@@ -153,6 +165,41 @@ pub struct Args {
     /// Print the report as JSON.
     #[arg(long)]
     pub json: bool,
+
+    /// Kafka transport: bootstrap brokers `host:port[,...]` (loopback unless --allow-host).
+    /// --target is then only used by --wait-ready (a replica's HTTP port).
+    #[arg(long, env = "CROSSVIEW_LOADTEST_KAFKA_BROKERS")]
+    pub kafka_brokers: Option<String>,
+
+    /// Kafka transport: the topic the replicas consume batches from.
+    #[arg(
+        long,
+        default_value = "batches",
+        env = "CROSSVIEW_LOADTEST_KAFKA_INPUT_TOPIC"
+    )]
+    pub kafka_input_topic: String,
+
+    /// Kafka transport: the topic the replicas produce results to.
+    #[arg(
+        long,
+        default_value = "results",
+        env = "CROSSVIEW_LOADTEST_KAFKA_OUTPUT_TOPIC"
+    )]
+    pub kafka_output_topic: String,
+
+    /// Kafka transport: encoding of the produced batches.
+    #[arg(
+        long,
+        value_enum,
+        default_value = "json",
+        env = "CROSSVIEW_LOADTEST_KAFKA_FORMAT"
+    )]
+    pub kafka_format: KafkaFormat,
+
+    /// Kafka transport: a librdkafka property `KEY=VALUE` for producer and consumer
+    /// (repeatable; e.g. security.protocol, sasl.*).
+    #[arg(long)]
+    pub kafka_property: Vec<String>,
 }
 
 /// Parses `1.5s`, `250ms`, `2m`, `1h` or a bare number of seconds.
@@ -194,6 +241,16 @@ impl Args {
             self.duration.is_some() || self.frames.is_some() || !self.repeat,
             "--loop needs --duration or --frames to stop"
         );
+        if self.transport == Transport::Kafka {
+            anyhow::ensure!(
+                self.kafka_brokers.is_some(),
+                "--transport kafka needs --kafka-brokers"
+            );
+            anyhow::ensure!(
+                !self.soak,
+                "--soak drops and reconnects camera connections: gRPC or HTTP only"
+            );
+        }
         if self.soak {
             anyhow::ensure!(self.rate > 0.0, "--soak needs a fixed --rate");
             anyhow::ensure!(
@@ -249,5 +306,17 @@ mod tests {
         assert_eq!(a.scene_names("lab"), vec!["p", "q"]);
         let a = Args::parse_from(["x", "--recording", "r", "--loop"]);
         assert!(a.validate().is_err());
+        let a = Args::parse_from(["x", "--recording", "r", "--transport", "kafka"]);
+        assert!(a.validate().is_err(), "kafka needs brokers");
+        let a = Args::parse_from([
+            "x",
+            "--recording",
+            "r",
+            "--transport",
+            "kafka",
+            "--kafka-brokers",
+            "b:9092",
+        ]);
+        a.validate().unwrap();
     }
 }

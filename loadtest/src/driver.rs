@@ -14,6 +14,7 @@ use tokio::task::JoinHandle;
 use crate::args::{Args, FrameIds, Transport};
 use crate::grpc::{self, GrpcSlot};
 use crate::http::{self, HttpSlot};
+use crate::kafka::{self, KafkaSlot};
 use crate::promtext::{self, Sample};
 use crate::recording::Workload;
 use crate::report::{Comparison, Latency, Report, SoakCounts};
@@ -21,10 +22,12 @@ use crate::tracker::Tracker;
 use crate::transport::Outgoing;
 use crate::{rss, target};
 
-/// A connection of either transport.
+/// A connection of any transport.
 enum Slot {
     Grpc(GrpcSlot),
     Http(HttpSlot),
+    /// Kafka: one producer serves every slot.
+    Kafka(Arc<KafkaSlot>),
 }
 
 impl Slot {
@@ -37,6 +40,7 @@ impl Slot {
                 args.request_timeout,
                 tracker.clone(),
             )?),
+            Transport::Kafka => Slot::Kafka(Arc::new(KafkaSlot::new(args, tracker.clone()).await?)),
         })
     }
 
@@ -44,6 +48,7 @@ impl Slot {
         match self {
             Slot::Grpc(s) => s.send(out),
             Slot::Http(s) => s.send(out),
+            Slot::Kafka(s) => s.send(out),
         }
     }
 }
@@ -100,7 +105,14 @@ struct Soak {
 /// Runs the load test described by `args` and returns its report.
 pub async fn run(args: &Args) -> anyhow::Result<Report> {
     args.validate()?;
-    target::check_target(&args.target, &args.allow_host).await?;
+    // Kafka: the replicas are behind the broker; --target is only a replica to wait for.
+    let via_kafka = args.transport == Transport::Kafka;
+    if via_kafka {
+        kafka::check_brokers(args).await?;
+    }
+    if !via_kafka || args.wait_ready.is_some() {
+        target::check_target(&args.target, &args.allow_host).await?;
+    }
     let workload = Arc::new(Workload::load(&args.recording)?);
     if let Some(w) = args.wait_ready {
         target::wait_ready(&args.target, w).await?;
@@ -110,22 +122,37 @@ pub async fn run(args: &Args) -> anyhow::Result<Report> {
         .into_iter()
         .map(Arc::from)
         .collect();
-    for scene in &scenes {
-        target::check_scene(&args.target, scene, &workload.scene).await?;
+    if !via_kafka {
+        for scene in &scenes {
+            target::check_scene(&args.target, scene, &workload.scene).await?;
+        }
     }
     let ncam = workload.scene.cameras.len();
     let tracker = Arc::new(Tracker::new());
-    let metrics_before = promtext::scrape(&args.target).await.ok();
+    // Several replicas may share the scenes: no single server's counters to compare with.
+    let scrape = |args: &Args| {
+        let target = args.target.clone();
+        async move {
+            if via_kafka {
+                None
+            } else {
+                promtext::scrape(&target).await.ok()
+            }
+        }
+    };
+    let metrics_before = scrape(args).await;
     let rss = args
         .server_pid
         .map(|pid| rss::spawn_sampler(pid, Duration::from_secs(1)));
 
-    let subscribers = subscribe_all(args, &scenes, &tracker).await?;
+    let (subscribers, kafka_start) = subscribe_all(args, &scenes, &tracker).await?;
     // The server registers a subscriber right after answering; give it a moment.
     tokio::time::sleep(Duration::from_millis(200)).await;
 
     let nslots = if args.soak {
         scenes.len() * ncam
+    } else if via_kafka {
+        1
     } else {
         args.connections
     };
@@ -239,6 +266,11 @@ pub async fn run(args: &Args) -> anyhow::Result<Report> {
 
     // Drain: every batch answered and every accepted frame's result in, or the timeout.
     let drain_until = Instant::now() + args.drain_timeout;
+    if let Some(Some(Slot::Kafka(k))) = slots.first() {
+        let k = k.clone();
+        let wait = args.drain_timeout;
+        let _ = tokio::task::spawn_blocking(move || k.flush(wait)).await;
+    }
     while Instant::now() < drain_until {
         if sender.window.available_permits() == args.max_in_flight && tracker.in_flight() == 0 {
             break;
@@ -249,7 +281,22 @@ pub async fn run(args: &Args) -> anyhow::Result<Report> {
     for s in &subscribers {
         s.abort();
     }
-    let metrics_after = promtext::scrape(&args.target).await.ok();
+    // Kafka: a frame that seems lost may be in the topic all the same (a broker whose live
+    // reads skipped a record); look for it from where the run began.
+    if let Some(start) = kafka_start {
+        let lost = tracker.snapshot().lost;
+        if !lost.is_empty() {
+            match kafka::reread(args, &start, &scenes).await {
+                Ok(found) => {
+                    for key in lost.into_iter().filter(|k| found.contains(k)) {
+                        tracker.found_on_reread(key);
+                    }
+                }
+                Err(e) => tracing::warn!(error = %e, "kafka: re-reading the results failed"),
+            }
+        }
+    }
+    let metrics_after = scrape(args).await;
     let rss = rss.map(|r| r.lock().unwrap_or_else(|e| e.into_inner()).clone());
     Ok(build_report(
         args,
@@ -280,26 +327,44 @@ fn frame_id_base(mode: FrameIds) -> u64 {
     }
 }
 
-/// Opens one result subscription per scene and waits until all are open.
+/// Opens one result subscription per scene (Kafka: one reader of the output topic, and the
+/// offsets it started from) and waits until all are open.
 async fn subscribe_all(
     args: &Args,
     scenes: &[Arc<str>],
     tracker: &Arc<Tracker>,
-) -> anyhow::Result<Vec<JoinHandle<()>>> {
+) -> anyhow::Result<(Vec<JoinHandle<()>>, Option<kafka::StartOffsets>)> {
     let mut handles = Vec::new();
+    if args.transport == Transport::Kafka {
+        // One reader of the output topic serves every scene.
+        let (tx, rx) = oneshot::channel();
+        let a = Arc::new(args.clone());
+        handles.push(tokio::spawn(kafka::subscribe(
+            a,
+            scenes.to_vec(),
+            tracker.clone(),
+            tx,
+        )));
+        let start = rx
+            .await
+            .context("result reader ended before opening")?
+            .context("cannot read the Kafka output topic")?;
+        return Ok((handles, Some(start)));
+    }
     for (i, scene) in scenes.iter().enumerate() {
         let (tx, rx) = oneshot::channel();
         let (t, s) = (tracker.clone(), scene.clone());
-        let h = match args.transport {
-            Transport::Grpc => tokio::spawn(grpc::subscribe(args.target.clone(), s, i, t, tx)),
-            Transport::Http => tokio::spawn(http::subscribe(args.target.clone(), s, i, t, tx)),
+        let h = if args.transport == Transport::Http {
+            tokio::spawn(http::subscribe(args.target.clone(), s, i, t, tx))
+        } else {
+            tokio::spawn(grpc::subscribe(args.target.clone(), s, i, t, tx))
         };
         rx.await
             .context("subscriber ended before opening")?
             .with_context(|| format!("cannot subscribe to scene '{scene}'"))?;
         handles.push(h);
     }
-    Ok(handles)
+    Ok((handles, None))
 }
 
 enum SoakAction {
@@ -445,6 +510,7 @@ fn build_report(
         results_per_s: snap.results as f64 / snap.active.as_secs_f64().max(1e-9),
         unexpected_results: snap.unexpected_results,
         duplicate_results: snap.duplicate_results,
+        results_missed_live: snap.missed_live,
         frames_lost: snap.lost.len() as u64,
         lost_examples: snap
             .lost

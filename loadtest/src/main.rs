@@ -4,6 +4,7 @@ mod args;
 mod driver;
 mod grpc;
 mod http;
+mod kafka;
 mod promtext;
 mod recording;
 mod report;

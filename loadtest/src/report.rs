@@ -87,6 +87,9 @@ pub struct Report {
     pub results_per_s: f64,
     pub unexpected_results: u64,
     pub duplicate_results: u64,
+    /// Kafka: results the live read of the output topic never delivered although they are
+    /// in the topic (found by re-reading it after the run; a broker fault, not a lost frame).
+    pub results_missed_live: u64,
     /// Frames with an accepted batch that never came back in a result: must be 0.
     pub frames_lost: u64,
     /// Up to 20 lost `(scene, frame id)`.
@@ -155,6 +158,13 @@ impl Report {
             "  lost      {} frames {:?}",
             self.frames_lost, self.lost_examples
         );
+        if self.results_missed_live > 0 {
+            let _ = writeln!(
+                s,
+                "  broker    {} results published but skipped by the live read (found on re-read)",
+                self.results_missed_live
+            );
+        }
         if self.unexpected_results + self.duplicate_results > 0 {
             let _ = writeln!(
                 s,

@@ -206,3 +206,113 @@ async fn refuses_non_loopback_targets() {
         .unwrap_err();
     assert!(format!("{err:#}").contains("not loopback"), "{err:#}");
 }
+
+/// A stand-in replica on a real broker: reads `batches` (JSON or protobuf by header), and once
+/// both cameras of a frame arrived produces its JSON result to `results`, except for the
+/// frames whose recording id is in `swallow`.
+async fn fake_replica(broker: String, swallow: HashSet<u64>) {
+    use prost::Message as _;
+    use rdkafka::config::ClientConfig;
+    use rdkafka::consumer::{Consumer, StreamConsumer};
+    use rdkafka::message::{Headers, Message};
+    use rdkafka::producer::{FutureProducer, FutureRecord};
+    // Assigned, not subscribed: no group join to wait for.
+    let consumer: StreamConsumer = ClientConfig::new()
+        .set("bootstrap.servers", &broker)
+        .set("group.id", "fake-replica")
+        .set("fetch.wait.max.ms", "10")
+        .create()
+        .unwrap();
+    let mut parts = rdkafka::TopicPartitionList::new();
+    for p in 0..2 {
+        parts
+            .add_partition_offset("batches", p, rdkafka::Offset::Beginning)
+            .unwrap();
+    }
+    consumer.assign(&parts).unwrap();
+    let producer: FutureProducer = ClientConfig::new()
+        .set("bootstrap.servers", &broker)
+        .create()
+        .unwrap();
+    let mut seen: HashMap<(String, u64), HashSet<String>> = HashMap::new();
+    loop {
+        // Transient client errors (a connection being set up) are retried.
+        let Ok(m) = consumer.recv().await else {
+            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+            continue;
+        };
+        let scene = String::from_utf8(m.key().unwrap().to_vec()).unwrap();
+        let protobuf = m.headers().is_some_and(|h| {
+            h.iter()
+                .any(|h| h.key == "content-type" && h.value == Some(b"application/x-protobuf"))
+        });
+        let payload = m.payload().unwrap();
+        let (camera, frame) = if protobuf {
+            let b = crossview_api::pb::Batch::decode(payload).unwrap();
+            assert_eq!(b.scene, scene, "protobuf batches name their scene");
+            (b.camera, b.frame_id)
+        } else {
+            let b: Batch = serde_json::from_slice(payload).unwrap();
+            (b.camera, b.frame_id)
+        };
+        let cams = seen.entry((scene.clone(), frame)).or_default();
+        // Fresh frame ids are shifted by a multiple of 1000: swallow by the recording's id.
+        if cams.insert(camera) && cams.len() == 2 && !swallow.contains(&(frame % 1000)) {
+            let body = format!(
+                r#"{{"scene":"{scene}","frame_id":{frame},"complete":true,"identities":[]}}"#
+            );
+            let r = FutureRecord::to("results").key(&scene).payload(&body);
+            producer
+                .send(r, std::time::Duration::from_secs(10))
+                .await
+                .unwrap();
+        }
+    }
+}
+
+/// Kafka transport through a real Kafka-protocol broker (tansu, `make setup`): batches keyed
+/// by scene in both encodings, results read back from the output topic; a frame the replica
+/// never publishes is reported lost.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn kafka_transport_through_a_real_broker() {
+    let Some(broker) = crossview_testing::kafka::Broker::start() else {
+        return;
+    };
+    broker.create_topic("batches", 2);
+    broker.create_topic("results", 2);
+    let fake = tokio::spawn(fake_replica(broker.addr.clone(), HashSet::from([4])));
+    let rec = recording(8);
+    for format in ["json", "protobuf"] {
+        let a = Args::parse_from([
+            "crossview-loadtest".to_string(),
+            format!("--recording={}", rec.path().display()),
+            "--transport=kafka".to_string(),
+            format!("--kafka-brokers={}", broker.addr),
+            format!("--kafka-format={format}"),
+            "--rate=100".to_string(),
+            "--drain-timeout=5s".to_string(),
+        ]);
+        let report = driver::run(&a).await.unwrap();
+        assert_eq!(report.batches_sent, 16, "{format}: {}", report.to_text());
+        assert_eq!(report.batches_accepted, 16, "{format}");
+        assert_eq!(report.results, 7, "{format}: {}", report.to_text());
+        assert_eq!(report.latency_complete.count, 7, "{format}");
+        assert_eq!(report.frames_lost, 1, "{format}");
+        let (scene, frame) = &report.lost_examples[0];
+        assert_eq!(scene, "lab");
+        assert_eq!(
+            frame % 1000,
+            4,
+            "{format}: frame ids are shifted, the fourth is lost"
+        );
+        assert!(!report.passed);
+        assert!(
+            report.server_comparison.is_empty(),
+            "no single server to compare with"
+        );
+    }
+    // Its consumer closes while the broker still runs (a close against a dead broker waits
+    // for librdkafka's timeouts).
+    fake.abort();
+    let _ = fake.await;
+}

@@ -48,6 +48,7 @@ struct Inner {
     results_complete: u64,
     unexpected_results: u64,
     duplicate_results: u64,
+    missed_live: u64,
     latency_complete: Histogram<u64>,
     latency_partial: Histogram<u64>,
     first_send: Option<Instant>,
@@ -80,6 +81,7 @@ impl Tracker {
                 results_complete: 0,
                 unexpected_results: 0,
                 duplicate_results: 0,
+                missed_live: 0,
                 latency_complete: histogram(),
                 latency_partial: histogram(),
                 first_send: None,
@@ -191,6 +193,18 @@ impl Tracker {
         })
     }
 
+    /// A result the live subscription never delivered but a later re-read of the output
+    /// found (Kafka: the broker's live reads skipped it): the frame is not lost, its latency
+    /// unknown.
+    pub fn found_on_reread(&self, key: FrameKey) {
+        self.update(key, |g, st| {
+            if !st.result {
+                st.result = true;
+                g.missed_live += 1;
+            }
+        })
+    }
+
     /// Frames still waiting for a batch answer or, once accepted, for their result.
     pub fn in_flight(&self) -> usize {
         self.lock().in_flight
@@ -230,6 +244,7 @@ impl Tracker {
             results_complete: g.results_complete,
             unexpected_results: g.unexpected_results,
             duplicate_results: g.duplicate_results,
+            missed_live: g.missed_live,
             frames_accepted: g.frames.values().filter(|f| f.accepted > 0).count() as u64,
             lost,
             latency_complete: g.latency_complete.clone(),
@@ -253,6 +268,8 @@ pub struct Snapshot {
     pub results_complete: u64,
     pub unexpected_results: u64,
     pub duplicate_results: u64,
+    /// Results found only by re-reading the output (see [`Tracker::found_on_reread`]).
+    pub missed_live: u64,
     pub frames_accepted: u64,
     pub lost: Vec<FrameKey>,
     pub latency_complete: Histogram<u64>,
@@ -293,9 +310,14 @@ mod tests {
         assert!((4_990..=5_010).contains(&p50), "{p50}");
         assert_eq!(s.latency_partial.len(), 1);
         assert_eq!(t.in_flight(), 1);
+        t.found_on_reread((0, 2));
+        t.found_on_reread((0, 2));
+        let s = t.snapshot();
+        assert!(s.lost.is_empty());
+        assert_eq!((s.missed_live, s.latency_partial.len()), (1, 1));
         t.sent((0, 5), t0);
         t.failed((0, 5), "timeout");
-        assert_eq!(t.in_flight(), 1);
+        assert_eq!(t.in_flight(), 0);
         assert_eq!(t.snapshot().errors_by_kind["timeout"], 1);
     }
 }

@@ -352,6 +352,25 @@ async fn one_replica_publishes_every_batch_skips_malformed_and_resumes_after_res
         "{m}"
     );
     assert!(m.contains("crossview_kafka_assigned{"), "{m}");
+    // Consumer lag is exported per owned partition that holds records (librdkafka
+    // statistics, every 2 s) and falls to 0 once everything is consumed and committed.
+    let mut lags = Vec::new();
+    for _ in 0..150 {
+        let m = metrics_text(&base).await;
+        lags = m
+            .lines()
+            .filter(|l| l.starts_with("crossview_kafka_consumer_lag{topic=\"batches\""))
+            .map(String::from)
+            .collect();
+        if !lags.is_empty() && lags.iter().all(|l| l.ends_with(" 0")) {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    assert!(
+        !lags.is_empty() && lags.iter().all(|l| l.ends_with(" 0")),
+        "consumer lag never reached 0: {lags:?}"
+    );
     assert_eq!(
         metric(&m, "crossview_kafka_records_total{outcome=\"rejected\"}"),
         1.0,

@@ -63,16 +63,28 @@ impl SceneDecl {
                 }
             }
             _ => {
-                let text = std::fs::read_to_string(s).map_err(|e| Error::Io {
+                // Only the first line: a recording may be gigabytes, a header is small.
+                use std::io::{BufRead, Read};
+                let io = |e| Error::Io {
                     path: s.into(),
                     source: e,
-                })?;
-                let first = text.lines().next().unwrap_or("");
+                };
+                let mut first = String::new();
+                std::io::BufReader::new(std::fs::File::open(s).map_err(io)?)
+                    .take(MAX_HEADER_BYTES)
+                    .read_line(&mut first)
+                    .map_err(io)?;
+                if first.len() as u64 >= MAX_HEADER_BYTES && !first.ends_with('\n') {
+                    return Err(Error::invalid(
+                        "--scene",
+                        format!("{s}: the first line exceeds {MAX_HEADER_BYTES} bytes"),
+                    ));
+                }
                 #[derive(serde::Deserialize)]
                 struct Header {
                     scene: SceneSpec,
                 }
-                let h: Header = serde_json::from_str(first).map_err(|e| {
+                let h: Header = serde_json::from_str(&first).map_err(|e| {
                     Error::invalid("--scene", format!("{s}: not a scene header: {e}"))
                 })?;
                 h.scene
@@ -94,6 +106,9 @@ impl SceneDecl {
         Ok(SceneDecl { spec })
     }
 }
+
+/// Longest scene header `--scene FILE` reads (a header of many cameras is a few KiB).
+const MAX_HEADER_BYTES: u64 = 1 << 20;
 
 /// `name:WIDTHxHEIGHT`.
 fn parse_camera(s: &str) -> Result<CameraSpec> {
@@ -305,6 +320,27 @@ impl Default for ServeConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn scene_decl_reads_inline_cameras_or_a_header_line() {
+        let d = SceneDecl::parse("lab=a:640x480,b:1920x1080").unwrap();
+        assert_eq!(d.spec.name, "lab");
+        assert_eq!(d.spec.cameras.len(), 2);
+        assert!(SceneDecl::parse("lab=a:640x480,a:640x480").is_err());
+        let dir = tempfile::tempdir().unwrap();
+        let rec = dir.path().join("rec.jsonl");
+        let header =
+            r#"{"scene": {"name": "hall", "cameras": [{"name": "c", "width": 8, "height": 6}]}}"#;
+        std::fs::write(&rec, format!("{header}\n{{\"camera\": \"c\"}}\n")).unwrap();
+        let d = SceneDecl::parse(rec.to_str().unwrap()).unwrap();
+        assert_eq!((d.spec.name.as_str(), d.spec.cameras[0].width), ("hall", 8));
+        // A first line that never ends is refused after a bounded read.
+        let big = dir.path().join("big.jsonl");
+        std::fs::write(&big, vec![b'x'; (MAX_HEADER_BYTES + 10) as usize]).unwrap();
+        let e = SceneDecl::parse(big.to_str().unwrap()).unwrap_err();
+        assert!(e.to_string().contains("exceeds"), "{e}");
+        assert!(SceneDecl::parse("/no/such/file.jsonl").is_err());
+    }
 
     #[test]
     fn model_spec_parses_name_and_stem() {

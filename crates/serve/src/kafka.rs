@@ -444,8 +444,26 @@ pub fn start(service: Arc<Service>, config: KafkaConfig) -> Result<tokio::task::
         forwarders.push(tokio::spawn(k.clone().forward(name, results)));
     }
     tracing::info!(config = ?k.config, "kafka mode: consuming");
+    // Offsets go out every COMMIT_INTERVAL (when they moved), not per record: one commit
+    // request per partition and interval whatever the rate.
+    let ticker = {
+        let k = k.clone();
+        tokio::spawn(async move {
+            let stop = k.service.shutting_down();
+            tokio::pin!(stop);
+            let mut tick = tokio::time::interval(COMMIT_INTERVAL);
+            tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+            loop {
+                tokio::select! {
+                    _ = tick.tick() => k.commit(CommitMode::Async),
+                    _ = &mut stop => break,
+                }
+            }
+        })
+    };
     Ok(tokio::spawn(async move {
         k.clone().consume().await;
+        let _ = ticker.await;
         for f in forwarders {
             let _ = f.await;
         }
@@ -453,6 +471,10 @@ pub fn start(service: Arc<Service>, config: KafkaConfig) -> Result<tokio::task::
         tracing::info!("kafka mode: stopped");
     }))
 }
+
+/// How often the committable offsets are committed (asynchronously) while running; on
+/// revocation and at shutdown they are committed at once, synchronously.
+const COMMIT_INTERVAL: Duration = Duration::from_millis(100);
 
 /// What became of one input record.
 enum Handled {
@@ -493,7 +515,6 @@ impl Kafka {
             if let Handled::Stop = handled {
                 break;
             }
-            self.commit(CommitMode::Async);
             // Backpressure: wait while too many frames wait for their results.
             while lock(&self.offsets).frames.len() >= self.config.max_in_flight
                 && self.service.accepting()
@@ -625,7 +646,6 @@ impl Kafka {
                         o.done(p, off);
                     }
                 }
-                self.commit(CommitMode::Async);
             }
             if !self.service.accepting() {
                 return;

@@ -56,8 +56,18 @@ pub(crate) fn load_model(
     limits: &Limits,
 ) -> Result<(SceneInfo, Box<dyn Encoder>)> {
     let bytes = read(&spec.path)?;
-    let encoder = OnnxEncoder::load(&spec.path)?;
-    let version = model_version(&encoder.metadata().version, &bytes);
+    load_model_bytes(spec, &bytes, limits)
+}
+
+/// [`load_model`] on bytes already read from `spec.path` (a reload reads the file once, for
+/// its hash and its session).
+pub(crate) fn load_model_bytes(
+    spec: &ModelSpec,
+    bytes: &[u8],
+    limits: &Limits,
+) -> Result<(SceneInfo, Box<dyn Encoder>)> {
+    let encoder = OnnxEncoder::from_bytes(&spec.path.display().to_string(), bytes)?;
+    let version = model_version(&encoder.metadata().version, bytes);
     let info = scene_info(&spec.name, encoder.metadata(), version, limits)?;
     Ok((info, Box::new(encoder)))
 }

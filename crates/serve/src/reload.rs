@@ -66,27 +66,25 @@ impl Reloader {
             version,
             error: None,
         };
-        // The file's content hash first: an unchanged file costs no session.
-        let path = spec.path.clone();
-        let hash = tokio::task::spawn_blocking(move || {
-            std::fs::read(&path)
-                .ok()
-                .map(|b| registry::model_version("", &b))
+        // The file is read once: its content hash first (an unchanged file costs no
+        // session), then the same bytes make the session.
+        let limits = self.limits;
+        let (spec2, unchanged) = (spec.clone(), current.clone());
+        let loaded = tokio::task::spawn_blocking(move || {
+            let bytes = std::fs::read(&spec2.path).ok()?;
+            let hash = registry::model_version("", &bytes);
+            if unchanged.as_deref().is_some_and(|v| v.ends_with(&hash)) {
+                return Some(None);
+            }
+            Some(Some(registry::load_model_bytes(&spec2, &bytes, &limits)))
         })
         .await
-        .ok()
-        .flatten();
-        let Some(hash) = hash else {
-            return result("missing", current);
+        .unwrap_or_else(|e| Some(Some(Err(Error::internal_from("model loading panicked", e)))));
+        let model = match loaded {
+            None => return result("missing", current),
+            Some(None) => return result("unchanged", current),
+            Some(Some(m)) => m,
         };
-        if current.as_deref().is_some_and(|v| v.ends_with(&hash)) {
-            return result("unchanged", current);
-        }
-        let limits = self.limits;
-        let spec2 = spec.clone();
-        let model = tokio::task::spawn_blocking(move || registry::load_model(&spec2, &limits))
-            .await
-            .unwrap_or_else(|e| Err(Error::internal_from("model loading panicked", e)));
         let (info, encoder) = match model {
             Ok(m) => m,
             Err(e) => return refused(spec, current, &e),
