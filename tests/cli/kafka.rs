@@ -57,6 +57,26 @@ fn simulate(bin: &str, dir: &std::path::Path, frames: u32) -> Vec<Line> {
         .collect()
 }
 
+/// What every test starts from: a broker with topics `batches` and `results`, the binary,
+/// and a simulated recording's batch lines.
+struct Setup {
+    broker: Broker,
+    bin: &'static str,
+    lines: Vec<Line>,
+}
+
+/// A fresh broker (`batches` with `partitions` partitions, `results` with one) and `frames`
+/// simulated frames; `None` when there is no broker binary (see [`Broker::start`]).
+fn setup(partitions: u32, frames: u32) -> Option<Setup> {
+    let broker = Broker::start()?;
+    broker.create_topic("batches", partitions);
+    broker.create_topic("results", 1);
+    let bin = env!("CARGO_BIN_EXE_crossview");
+    let tmp = tempfile::tempdir().unwrap();
+    let lines = simulate(bin, tmp.path(), frames);
+    Some(Setup { broker, bin, lines })
+}
+
 fn producer(broker: &Broker) -> FutureProducer {
     ClientConfig::new()
         .set("bootstrap.servers", &broker.addr)
@@ -303,15 +323,13 @@ async fn metrics_text(base: &str) -> String {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn one_replica_publishes_every_batch_skips_malformed_and_resumes_after_restart() {
-    let Some(broker) = Broker::start() else {
+    let Some(Setup {
+        broker, bin, lines, ..
+    }) = setup(4, 20)
+    else {
         return;
     };
-    broker.create_topic("batches", 4);
-    broker.create_topic("results", 1);
     broker.create_topic("dead", 1);
-    let bin = env!("CARGO_BIN_EXE_crossview");
-    let tmp = tempfile::tempdir().unwrap();
-    let lines = simulate(bin, tmp.path(), 20);
     let scenes: Vec<String> = vec!["north".into(), "south".into()];
     let mut args = model_args(&scenes);
     args.extend(kafka_args(&broker, "replicas", "r1"));
@@ -437,14 +455,12 @@ async fn one_replica_publishes_every_batch_skips_malformed_and_resumes_after_res
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn two_replicas_share_scenes_and_one_killed_hands_them_over() {
-    let Some(broker) = Broker::start() else {
+    let Some(Setup {
+        broker, bin, lines, ..
+    }) = setup(4, 24)
+    else {
         return;
     };
-    broker.create_topic("batches", 4);
-    broker.create_topic("results", 1);
-    let bin = env!("CARGO_BIN_EXE_crossview");
-    let tmp = tempfile::tempdir().unwrap();
-    let lines = simulate(bin, tmp.path(), 24);
     let scenes: Vec<String> = (0..8).map(|i| format!("scene{i}")).collect();
     let mut a_args = model_args(&scenes);
     a_args.extend(kafka_args(&broker, "replicas", "a"));
@@ -537,14 +553,12 @@ async fn two_replicas_share_scenes_and_one_killed_hands_them_over() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn protobuf_batches_in_and_protobuf_results_out() {
-    let Some(broker) = Broker::start() else {
+    let Some(Setup {
+        broker, bin, lines, ..
+    }) = setup(2, 6)
+    else {
         return;
     };
-    broker.create_topic("batches", 2);
-    broker.create_topic("results", 1);
-    let bin = env!("CARGO_BIN_EXE_crossview");
-    let tmp = tempfile::tempdir().unwrap();
-    let lines = simulate(bin, tmp.path(), 6);
     let scenes: Vec<String> = vec!["east".into()];
     let mut args = model_args(&scenes);
     args.extend(kafka_args(&broker, "proto", "p1"));
