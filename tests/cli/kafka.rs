@@ -312,6 +312,24 @@ async fn serve(bin: &str, args: &[String]) -> (ChildGuard, String) {
     (child, base)
 }
 
+/// Waits until the replica at `base` counted `malformed` malformed records, checks it counted
+/// `accepted` accepted ones, and returns its metrics.
+async fn records_counted(base: &str, accepted: usize, malformed: u32) -> String {
+    wait_for_metric(
+        base,
+        "crossview_kafka_records_total{outcome=\"malformed\"}",
+        malformed.into(),
+    )
+    .await;
+    let m = metrics_text(base).await;
+    assert_eq!(
+        metric(&m, "crossview_kafka_records_total{outcome=\"accepted\"}"),
+        accepted as f64,
+        "{m}"
+    );
+    m
+}
+
 async fn metrics_text(base: &str) -> String {
     reqwest::get(format!("{base}/metrics"))
         .await
@@ -357,18 +375,7 @@ async fn one_replica_publishes_every_batch_skips_malformed_and_resumes_after_res
         }
     }
     results.wait_cover(&expected).await;
-    wait_for_metric(
-        &base,
-        "crossview_kafka_records_total{outcome=\"malformed\"}",
-        3.0,
-    )
-    .await;
-    let m = metrics_text(&base).await;
-    assert_eq!(
-        metric(&m, "crossview_kafka_records_total{outcome=\"accepted\"}"),
-        expected.len() as f64,
-        "{m}"
-    );
+    let m = records_counted(&base, expected.len(), 3).await;
     assert!(m.contains("crossview_kafka_assigned{"), "{m}");
     // Consumer lag is exported per owned partition that holds records (librdkafka
     // statistics, every 2 s) and falls to 0 once everything is consumed and committed.
@@ -605,16 +612,5 @@ async fn protobuf_batches_in_and_protobuf_results_out() {
             .all(|r| r["identities"].as_u64() > Some(0)),
         "every frame of the clean simulation associates someone"
     );
-    wait_for_metric(
-        &base,
-        "crossview_kafka_records_total{outcome=\"malformed\"}",
-        1.0,
-    )
-    .await;
-    let m = metrics_text(&base).await;
-    assert_eq!(
-        metric(&m, "crossview_kafka_records_total{outcome=\"accepted\"}"),
-        expected.len() as f64,
-        "{m}"
-    );
+    records_counted(&base, expected.len(), 1).await;
 }
