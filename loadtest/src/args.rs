@@ -3,6 +3,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use clap::{Parser, ValueEnum};
+use crossview_api::format::ValueFormat;
 
 /// Which API carries the batches and results.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, serde::Serialize)]
@@ -15,15 +16,6 @@ pub enum Transport {
     /// Produce to the replicas' input topic, read results from their output topic
     /// (`crossview serve --kafka-*`, docs/kafka.md).
     Kafka,
-}
-
-/// How batches are encoded on the Kafka input topic (named by a `content-type` header).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum KafkaFormat {
-    /// A SPEC §7 batch line (`application/json`).
-    Json,
-    /// A protobuf `crossview.v1.Batch` (`application/x-protobuf`).
-    Protobuf,
 }
 
 /// How frame ids are chosen.
@@ -187,14 +179,10 @@ pub struct Args {
     )]
     pub kafka_output_topic: String,
 
-    /// Kafka transport: encoding of the produced batches.
-    #[arg(
-        long,
-        value_enum,
-        default_value = "json",
-        env = "CROSSVIEW_LOADTEST_KAFKA_FORMAT"
-    )]
-    pub kafka_format: KafkaFormat,
+    /// Kafka transport: encoding of the produced batches, `json` (a batch line) or
+    /// `protobuf` (`crossview.v1.Batch`), named by each record's `content-type` header.
+    #[arg(long, default_value = "json", env = "CROSSVIEW_LOADTEST_KAFKA_FORMAT")]
+    pub kafka_format: ValueFormat,
 
     /// Kafka transport: a librdkafka property `KEY=VALUE` for producer and consumer
     /// (repeatable; e.g. security.protocol, sasl.*).

@@ -129,18 +129,7 @@ pub async fn run(args: &Args) -> anyhow::Result<Report> {
     }
     let ncam = workload.scene.cameras.len();
     let tracker = Arc::new(Tracker::new());
-    // Several replicas may share the scenes: no single server's counters to compare with.
-    let scrape = |args: &Args| {
-        let target = args.target.clone();
-        async move {
-            if via_kafka {
-                None
-            } else {
-                promtext::scrape(&target).await.ok()
-            }
-        }
-    };
-    let metrics_before = scrape(args).await;
+    let metrics_before = server_metrics(args).await;
     let rss = args
         .server_pid
         .map(|pid| rss::spawn_sampler(pid, Duration::from_secs(1)));
@@ -296,7 +285,7 @@ pub async fn run(args: &Args) -> anyhow::Result<Report> {
             }
         }
     }
-    let metrics_after = scrape(args).await;
+    let metrics_after = server_metrics(args).await;
     let rss = rss.map(|r| r.lock().unwrap_or_else(|e| e.into_inner()).clone());
     Ok(build_report(
         args,
@@ -311,6 +300,15 @@ pub async fn run(args: &Args) -> anyhow::Result<Report> {
         metrics_before.zip(metrics_after),
         rss,
     ))
+}
+
+/// The server's `/metrics`, to compare our counts with; none over Kafka (several replicas
+/// may share the scenes: no single server's counters to compare with).
+async fn server_metrics(args: &Args) -> Option<Vec<Sample>> {
+    if args.transport == Transport::Kafka {
+        return None;
+    }
+    promtext::scrape(&args.target).await.ok()
 }
 
 /// The offset added to every frame id: 0 for `original`, else the current Unix time in ms
@@ -333,7 +331,7 @@ async fn subscribe_all(
     args: &Args,
     scenes: &[Arc<str>],
     tracker: &Arc<Tracker>,
-) -> anyhow::Result<(Vec<JoinHandle<()>>, Option<kafka::StartOffsets>)> {
+) -> anyhow::Result<(Vec<JoinHandle<()>>, Option<kafka::PartitionOffsets>)> {
     let mut handles = Vec::new();
     if args.transport == Transport::Kafka {
         // One reader of the output topic serves every scene.

@@ -9,6 +9,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use crossview_api::convert::batch_to_pb;
+use crossview_api::format::ValueFormat;
 use crossview_api::pb;
 use prost::Message as _;
 use rdkafka::config::ClientConfig;
@@ -19,7 +20,7 @@ use rdkafka::{Offset, TopicPartitionList};
 use serde::Deserialize;
 use tokio::sync::oneshot;
 
-use crate::args::{Args, KafkaFormat};
+use crate::args::Args;
 use crate::tracker::{FrameKey, Tracker};
 use crate::transport::Outgoing;
 
@@ -63,7 +64,7 @@ pub async fn check_brokers(args: &Args) -> anyhow::Result<()> {
 pub struct KafkaSlot {
     producer: FutureProducer,
     topic: Arc<str>,
-    format: KafkaFormat,
+    format: ValueFormat,
     tracker: Arc<Tracker>,
 }
 
@@ -102,22 +103,19 @@ impl KafkaSlot {
     /// Enqueues one batch now (so a camera's batches keep their order on the partition) and
     /// records the broker's acknowledgement when it comes.
     pub fn send(&self, out: Outgoing) {
-        let (value, content_type) = match self.format {
-            KafkaFormat::Json => match serde_json::to_vec(&out.batch) {
-                Ok(v) => (v, "application/json"),
+        let value = match self.format {
+            ValueFormat::Json => match serde_json::to_vec(&out.batch) {
+                Ok(v) => v,
                 Err(_) => {
                     self.tracker.failed(out.key, "encode");
                     return;
                 }
             },
-            KafkaFormat::Protobuf => (
-                batch_to_pb(&out.scene, &out.batch).encode_to_vec(),
-                "application/x-protobuf",
-            ),
+            ValueFormat::Protobuf => batch_to_pb(&out.scene, &out.batch).encode_to_vec(),
         };
         let headers = OwnedHeaders::new().insert(Header {
             key: "content-type",
-            value: Some(content_type),
+            value: Some(self.format.content_type()),
         });
         let record = FutureRecord::to(&self.topic)
             .key(&*out.scene)
@@ -162,14 +160,16 @@ struct JsonResult {
 /// (scene, frame id, complete) of one result record.
 fn decode_result<M: Message>(m: &M) -> anyhow::Result<(String, u64, bool)> {
     let payload = m.payload().context("empty result record")?;
-    let protobuf = m.headers().is_some_and(|h| {
-        h.iter().any(|h| {
-            h.key.eq_ignore_ascii_case("content-type")
-                && h.value
-                    .is_some_and(|v| v.starts_with(b"application/x-protobuf"))
+    // The format its header names; JSON without one (the replicas' default).
+    let format = m
+        .headers()
+        .and_then(|h| {
+            h.iter()
+                .find(|h| h.key.eq_ignore_ascii_case("content-type"))
         })
-    });
-    if protobuf {
+        .and_then(|h| ValueFormat::from_content_type(h.value.unwrap_or_default()))
+        .unwrap_or_default();
+    if format == ValueFormat::Protobuf {
         let r = pb::FrameResult::decode(payload).context("not a protobuf FrameResult")?;
         Ok((r.scene, r.frame_id, r.complete))
     } else {
@@ -185,9 +185,9 @@ pub async fn subscribe(
     args: Arc<Args>,
     scenes: Vec<Arc<str>>,
     tracker: Arc<Tracker>,
-    ready: oneshot::Sender<anyhow::Result<StartOffsets>>,
+    ready: oneshot::Sender<anyhow::Result<PartitionOffsets>>,
 ) {
-    let (consumer, start) = match open_results(&args, None).await {
+    let (consumer, start, _) = match open_results(&args, None).await {
         Ok(c) => c,
         Err(e) => {
             let _ = ready.send(Err(e));
@@ -218,8 +218,8 @@ pub async fn subscribe(
     }
 }
 
-/// Where the run's reading of the output topic began: (partition, offset).
-pub type StartOffsets = Vec<(i32, i64)>;
+/// An offset per partition of the output topic: (partition, offset).
+pub type PartitionOffsets = Vec<(i32, i64)>;
 
 fn scene_index(scenes: &[Arc<str>]) -> HashMap<Arc<str>, usize> {
     scenes
@@ -236,23 +236,8 @@ pub async fn reread(
     start: &[(i32, i64)],
     scenes: &[Arc<str>],
 ) -> anyhow::Result<HashSet<FrameKey>> {
-    let (consumer, _) = open_results(args, Some(start)).await?;
-    let topic = args.kafka_output_topic.clone();
-    let c2 = Arc::new(consumer);
-    let c3 = c2.clone();
-    let parts = start.to_vec();
-    let ends: HashMap<i32, i64> = tokio::task::spawn_blocking(move || {
-        parts
-            .iter()
-            .map(|(p, _)| {
-                c3.fetch_watermarks(&topic, *p, Duration::from_secs(10))
-                    .map(|(_, high)| (*p, high))
-            })
-            .collect::<Result<_, _>>()
-    })
-    .await
-    .context("kafka watermarks task")?
-    .context("kafka watermarks")?;
+    let (consumer, _, ends) = open_results(args, Some(start)).await?;
+    let ends: HashMap<i32, i64> = ends.into_iter().collect();
     let index = scene_index(scenes);
     let mut found = HashSet::new();
     let mut done: HashSet<i32> = start
@@ -262,7 +247,7 @@ pub async fn reread(
         .collect();
     let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
     while done.len() < start.len() {
-        let m = match tokio::time::timeout_at(deadline, c2.recv()).await {
+        let m = match tokio::time::timeout_at(deadline, consumer.recv()).await {
             Ok(Ok(m)) => m,
             Ok(Err(e)) => bail!("kafka re-read: {e}"),
             Err(_) => bail!("kafka re-read: the output topic's end not reached in 30 s"),
@@ -280,11 +265,12 @@ pub async fn reread(
 }
 
 /// A consumer of every partition of the output topic, assigned at `from` (or, without it,
-/// at each partition's high watermark), and the offsets it was assigned at.
+/// at each partition's high watermark), with the offsets it was assigned at and each
+/// partition's current high watermark.
 async fn open_results(
     args: &Args,
     from: Option<&[(i32, i64)]>,
-) -> anyhow::Result<(StreamConsumer, StartOffsets)> {
+) -> anyhow::Result<(StreamConsumer, PartitionOffsets, PartitionOffsets)> {
     let group = format!("crossview-loadtest-{}", std::process::id());
     let consumer: StreamConsumer = client(
         args,
@@ -299,40 +285,39 @@ async fn open_results(
     .create()
     .context("kafka consumer")?;
     let topic = args.kafka_output_topic.clone();
-    let from: Option<StartOffsets> = from.map(<[_]>::to_vec);
-    tokio::task::spawn_blocking(move || -> anyhow::Result<(StreamConsumer, StartOffsets)> {
+    let from: Option<PartitionOffsets> = from.map(<[_]>::to_vec);
+    tokio::task::spawn_blocking(move || {
         let timeout = Duration::from_secs(10);
-        if let Some(from) = from {
-            let mut tpl = TopicPartitionList::new();
-            for (p, o) in &from {
-                tpl.add_partition_offset(&topic, *p, Offset::Offset(*o))?;
+        let partitions: Vec<i32> = match &from {
+            Some(from) => from.iter().map(|(p, _)| *p).collect(),
+            None => {
+                let md = consumer
+                    .fetch_metadata(Some(&topic), timeout)
+                    .with_context(|| format!("kafka metadata of '{topic}'"))?;
+                md.topics()
+                    .iter()
+                    .filter(|t| t.name() == topic)
+                    .flat_map(|t| t.partitions().iter().map(|p| p.id()))
+                    .collect()
             }
-            consumer.assign(&tpl).context("kafka assign")?;
-            return Ok((consumer, from));
-        }
-        let md = consumer
-            .fetch_metadata(Some(&topic), timeout)
-            .with_context(|| format!("kafka metadata of '{topic}'"))?;
-        let partitions: Vec<i32> = md
-            .topics()
-            .iter()
-            .filter(|t| t.name() == topic)
-            .flat_map(|t| t.partitions().iter().map(|p| p.id()))
-            .collect();
+        };
         if partitions.is_empty() {
             bail!("kafka: output topic '{topic}' has no partitions (does it exist?)");
         }
-        let mut tpl = TopicPartitionList::new();
-        let mut start = Vec::new();
+        let mut highs = Vec::new();
         for p in partitions {
             let (_, high) = consumer
                 .fetch_watermarks(&topic, p, timeout)
                 .with_context(|| format!("kafka watermarks of {topic}/{p}"))?;
-            tpl.add_partition_offset(&topic, p, Offset::Offset(high))?;
-            start.push((p, high));
+            highs.push((p, high));
+        }
+        let start = from.unwrap_or_else(|| highs.clone());
+        let mut tpl = TopicPartitionList::new();
+        for (p, o) in &start {
+            tpl.add_partition_offset(&topic, *p, Offset::Offset(*o))?;
         }
         consumer.assign(&tpl).context("kafka assign")?;
-        Ok((consumer, start))
+        Ok((consumer, start, highs))
     })
     .await
     .context("kafka setup task")?

@@ -203,16 +203,12 @@ pub struct KafkaArgs {
     pub kafka_properties: Vec<String>,
     /// Encoding of input values without a `content-type` header: `json` (a batch line) or
     /// `protobuf` (`crossview.v1.Batch`).
-    #[arg(long, env = "CROSSVIEW_KAFKA_INPUT_FORMAT", default_value = "json", value_parser = parse_format)]
+    #[arg(long, env = "CROSSVIEW_KAFKA_INPUT_FORMAT", default_value = "json")]
     pub kafka_input_format: ValueFormat,
     /// Encoding of the results: `json` (`FrameResult` plus `producer`) or `protobuf`
     /// (`crossview.v1.FrameResult`; producer in the headers).
-    #[arg(long, env = "CROSSVIEW_KAFKA_OUTPUT_FORMAT", default_value = "json", value_parser = parse_format)]
+    #[arg(long, env = "CROSSVIEW_KAFKA_OUTPUT_FORMAT", default_value = "json")]
     pub kafka_output_format: ValueFormat,
-}
-
-fn parse_format(s: &str) -> Result<ValueFormat, String> {
-    s.parse().map_err(|e: crossview_core::Error| e.to_string())
 }
 
 impl KafkaArgs {

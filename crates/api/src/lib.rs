@@ -4,6 +4,7 @@
 //! and the load generator all speak through this crate.
 
 pub mod convert;
+pub mod format;
 pub mod types;
 
 /// Generated protobuf and tonic code for `crossview.v1`.

@@ -35,6 +35,7 @@ use rdkafka::util::Timeout;
 use rdkafka::{ClientContext, Offset, Statistics, TopicPartitionList};
 
 use crossview_api::convert::{batch_from_pb, result_to_pb};
+pub use crossview_api::format::ValueFormat;
 use crossview_api::pb;
 use crossview_core::{Batch, Error, Result};
 use prost::Message as _;
@@ -68,59 +69,6 @@ pub struct KafkaConfig {
     pub input_format: ValueFormat,
     /// How results are encoded.
     pub output_format: ValueFormat,
-}
-
-/// A record value's encoding, named by the `content-type` header of a record.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum ValueFormat {
-    /// JSON (`application/json`): a SPEC §7 batch line, a `FrameResult` object.
-    #[default]
-    Json,
-    /// Protobuf (`application/x-protobuf`): `crossview.v1.Batch`, `crossview.v1.FrameResult`.
-    Protobuf,
-}
-
-impl ValueFormat {
-    /// The `content-type` header value this format is written with.
-    pub fn content_type(self) -> &'static str {
-        match self {
-            ValueFormat::Json => "application/json",
-            ValueFormat::Protobuf => "application/x-protobuf",
-        }
-    }
-
-    /// The format a `content-type` header names (parameters such as `; charset=utf-8` are
-    /// ignored); `None` for one we do not read.
-    pub fn from_content_type(v: &[u8]) -> Option<Self> {
-        let v = std::str::from_utf8(v).ok()?;
-        let media = v
-            .split(';')
-            .next()
-            .unwrap_or("")
-            .trim()
-            .to_ascii_lowercase();
-        match media.as_str() {
-            "application/json" => Some(ValueFormat::Json),
-            "application/x-protobuf"
-            | "application/protobuf"
-            | "application/vnd.google.protobuf" => Some(ValueFormat::Protobuf),
-            _ => None,
-        }
-    }
-}
-
-impl std::str::FromStr for ValueFormat {
-    type Err = Error;
-    fn from_str(s: &str) -> Result<Self> {
-        match s.to_ascii_lowercase().as_str() {
-            "json" => Ok(ValueFormat::Json),
-            "protobuf" | "proto" => Ok(ValueFormat::Protobuf),
-            _ => Err(Error::invalid(
-                "format",
-                format!("'{}' is not json or protobuf", crate::truncate_echo(s)),
-            )),
-        }
-    }
 }
 
 impl std::fmt::Debug for KafkaConfig {
@@ -887,16 +835,5 @@ mod tests {
         let line = br#"{"camera":"c0","frame_id":3,"detections":[]}"#;
         assert!(decode(Some(b"lab"), Some(line), proto).is_err());
         assert!(decode(Some(b"lab"), Some(&bytes), ValueFormat::Json).is_err());
-        assert_eq!(
-            ValueFormat::from_content_type(b"application/x-protobuf"),
-            Some(proto)
-        );
-        assert_eq!(
-            ValueFormat::from_content_type(b"Application/JSON; charset=utf-8"),
-            Some(ValueFormat::Json)
-        );
-        assert_eq!(ValueFormat::from_content_type(b"text/plain"), None);
-        assert_eq!("protobuf".parse::<ValueFormat>().unwrap(), proto);
-        assert!("xml".parse::<ValueFormat>().is_err());
     }
 }

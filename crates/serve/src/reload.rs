@@ -69,21 +69,23 @@ impl Reloader {
         // The file is read once: its content hash first (an unchanged file costs no
         // session), then the same bytes make the session.
         let limits = self.limits;
-        let (spec2, unchanged) = (spec.clone(), current.clone());
-        let loaded = tokio::task::spawn_blocking(move || {
-            let bytes = std::fs::read(&spec2.path).ok()?;
+        let (spec2, serving) = (spec.clone(), current.clone());
+        let read = tokio::task::spawn_blocking(move || {
+            let Ok(bytes) = std::fs::read(&spec2.path) else {
+                return Read::Missing;
+            };
             let hash = registry::model_version("", &bytes);
-            if unchanged.as_deref().is_some_and(|v| v.ends_with(&hash)) {
-                return Some(None);
+            if serving.as_deref().is_some_and(|v| v.ends_with(&hash)) {
+                return Read::Unchanged;
             }
-            Some(Some(registry::load_model_bytes(&spec2, &bytes, &limits)))
+            Read::Loaded(registry::load_model_bytes(&spec2, &bytes, &limits))
         })
         .await
-        .unwrap_or_else(|e| Some(Some(Err(Error::internal_from("model loading panicked", e)))));
-        let model = match loaded {
-            None => return result("missing", current),
-            Some(None) => return result("unchanged", current),
-            Some(Some(m)) => m,
+        .unwrap_or_else(|e| Read::Loaded(Err(Error::internal_from("model loading panicked", e))));
+        let model = match read {
+            Read::Missing => return result("missing", current),
+            Read::Unchanged => return result("unchanged", current),
+            Read::Loaded(m) => m,
         };
         let (info, encoder) = match model {
             Ok(m) => m,
@@ -95,6 +97,16 @@ impl Reloader {
             Err(e) => refused(spec, current, &e),
         }
     }
+}
+
+/// What re-reading one model file found.
+enum Read {
+    /// The file is gone or unreadable.
+    Missing,
+    /// Its bytes are those of the model serving now.
+    Unchanged,
+    /// Different bytes, loaded (or refused).
+    Loaded(crossview_core::Result<(crate::SceneInfo, Box<dyn crossview_core::Encoder>)>),
 }
 
 fn refused(spec: &ModelSpec, version: Option<String>, e: &Error) -> ReloadOutcome {
