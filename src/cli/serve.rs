@@ -42,7 +42,9 @@ pub struct ServeArgs {
     /// Pending frames per scene beyond which the oldest is emitted as partial.
     #[arg(long, env = "CROSSVIEW_MAX_PENDING_FRAMES", default_value_t = 64)]
     pub max_pending_frames: usize,
-    /// Accepted bearer token (repeatable); with none (and no --api-key-file) auth is off.
+    /// Accepted bearer token (repeatable); with none (and no --api-key-file) auth is off, and
+    /// then the server listens beyond loopback only with --allow-unauthenticated. A blank
+    /// key, or a key source that yields no key, is a start-up error (never "auth off").
     #[arg(
         long = "api-key",
         env = "CROSSVIEW_API_KEYS",
@@ -50,9 +52,14 @@ pub struct ServeArgs {
         hide_env_values = true
     )]
     pub api_keys: Vec<String>,
-    /// File with one accepted bearer token per line (blank lines and `#` comments ignored).
+    /// File with one accepted bearer token per line (blank lines and `#` comments ignored);
+    /// a file holding no key is a start-up error.
     #[arg(long, env = "CROSSVIEW_API_KEY_FILE")]
     pub api_key_file: Option<PathBuf>,
+    /// Serve without an API key on an address beyond loopback. Without this flag such a
+    /// server refuses to start: anyone who reaches the port could push, read and reload.
+    #[arg(long, env = "CROSSVIEW_ALLOW_UNAUTHENTICATED")]
+    pub allow_unauthenticated: bool,
     /// TLS certificate chain (PEM); needs --tls-key.
     #[arg(long, env = "CROSSVIEW_TLS_CERT", requires = "tls_key")]
     pub tls_cert: Option<PathBuf>,
@@ -116,6 +123,14 @@ pub struct ServeArgs {
     /// A result subscriber that has not taken a waiting result for this long is disconnected.
     #[arg(long, env = "CROSSVIEW_SUBSCRIBER_STALL_TIMEOUT", default_value = "30s", value_parser = parse_duration)]
     pub subscriber_stall_timeout: Duration,
+    /// Memory (bytes) all result subscribers together may cost; each is charged a fixed
+    /// worst case (128 KiB). At the budget a new subscription displaces the subscriber
+    /// furthest behind, or is refused (429 / RESOURCE_EXHAUSTED) when all keep up.
+    #[arg(long, env = "CROSSVIEW_SUBSCRIBER_MEMORY", default_value_t = ConnectionLimits::default().subscriber_memory)]
+    pub subscriber_memory: usize,
+    /// Most result subscriptions (SSE, gRPC Subscribe / Stream) one connection may hold.
+    #[arg(long, env = "CROSSVIEW_MAX_SUBSCRIPTIONS_PER_CONNECTION", default_value_t = ConnectionLimits::default().max_subscriptions_per_connection)]
+    pub max_subscriptions_per_connection: usize,
     /// How long shutdown waits for open connections after flushing.
     #[arg(long, env = "CROSSVIEW_SHUTDOWN_GRACE", default_value = "10s", value_parser = parse_duration)]
     pub shutdown_grace: Duration,
@@ -277,7 +292,52 @@ pub fn parse_duration(s: &str) -> Result<Duration, String> {
     Ok(Duration::from_secs_f64(v * scale))
 }
 
+/// Longest API key file read (a file of keys is a few KiB).
+const MAX_KEY_FILE_BYTES: u64 = 1 << 20;
+
 impl ServeArgs {
+    /// The accepted API keys from --api-key / `CROSSVIEW_API_KEYS` and --api-key-file. Fails
+    /// closed: a blank key, or a source that was given but yields no key (an empty variable,
+    /// `,`, a file of comments only), is an error rather than authentication turned off.
+    fn api_keys(&self) -> anyhow::Result<Vec<String>> {
+        let mut keys = Vec::new();
+        for (i, k) in self.api_keys.iter().enumerate() {
+            anyhow::ensure!(
+                !k.trim().is_empty(),
+                "--api-key / CROSSVIEW_API_KEYS: key {} of {} is blank; refusing to start with authentication off",
+                i + 1,
+                self.api_keys.len()
+            );
+            keys.push(k.trim().to_string());
+        }
+        // clap ignores an empty variable: a variable that is set but holds no key is refused.
+        if self.api_keys.is_empty() && std::env::var_os("CROSSVIEW_API_KEYS").is_some() {
+            anyhow::bail!(
+                "CROSSVIEW_API_KEYS is set but holds no key; refusing to start with authentication off (unset it to serve without keys)"
+            );
+        }
+        if let Some(p) = &self.api_key_file {
+            use std::io::Read;
+            let mut text = String::new();
+            std::fs::File::open(p)
+                .and_then(|f| f.take(MAX_KEY_FILE_BYTES).read_to_string(&mut text))
+                .with_context(|| format!("reading API keys from {}", p.display()))?;
+            let before = keys.len();
+            keys.extend(
+                text.lines()
+                    .map(str::trim)
+                    .filter(|l| !l.is_empty() && !l.starts_with('#'))
+                    .map(String::from),
+            );
+            anyhow::ensure!(
+                keys.len() > before,
+                "{} holds no API key (only blank lines and comments); refusing to start with authentication off",
+                p.display()
+            );
+        }
+        Ok(keys)
+    }
+
     /// The library configuration these flags describe.
     pub fn to_config(&self) -> anyhow::Result<ServeConfig> {
         let models = self
@@ -290,17 +350,7 @@ impl ServeArgs {
             .iter()
             .map(|s| SceneDecl::parse(s))
             .collect::<crossview_core::Result<Vec<_>>>()?;
-        let mut api_keys = self.api_keys.clone();
-        if let Some(p) = &self.api_key_file {
-            let text = std::fs::read_to_string(p)
-                .with_context(|| format!("reading API keys from {}", p.display()))?;
-            api_keys.extend(
-                text.lines()
-                    .map(str::trim)
-                    .filter(|l| !l.is_empty() && !l.starts_with('#'))
-                    .map(String::from),
-            );
-        }
+        let api_keys = self.api_keys()?;
         let tls = match (&self.tls_cert, &self.tls_key) {
             (Some(cert), Some(key)) => Some(TlsConfig {
                 cert: cert.clone(),
@@ -315,6 +365,7 @@ impl ServeArgs {
             sync_timeout: self.sync_timeout,
             max_pending_frames: self.max_pending_frames,
             api_keys,
+            allow_unauthenticated: self.allow_unauthenticated,
             tls,
             limits: Limits {
                 max_request_bytes: self.max_request_bytes,
@@ -336,6 +387,8 @@ impl ServeArgs {
                 http2_max_streams: self.http2_max_streams,
                 http2_keepalive: self.http2_keepalive,
                 subscriber_stall_timeout: self.subscriber_stall_timeout,
+                subscriber_memory: self.subscriber_memory,
+                max_subscriptions_per_connection: self.max_subscriptions_per_connection,
             },
             shutdown_grace: self.shutdown_grace,
             tracker: (!self.no_tracking).then(|| TrackerConfig {
@@ -364,6 +417,12 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         .build()
         .context("starting the async runtime")?;
     rt.block_on(async {
+        // SIGHUP's default action ends the process: take it over before the port is bound,
+        // so a reload asked for while the models load never kills the server (the library
+        // listens for its own reloads from then on).
+        #[cfg(unix)]
+        let _early_hangup = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup())
+            .context("listening for SIGHUP")?;
         let listener = tokio::net::TcpListener::bind(&args.listen)
             .await
             .with_context(|| format!("binding {}", args.listen))?;

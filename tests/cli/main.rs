@@ -4,6 +4,7 @@
 
 mod demo;
 mod eval;
+mod fail_closed;
 mod kafka;
 mod model;
 mod offline_workers;
@@ -11,4 +12,6 @@ mod operator_loop;
 mod record_crash;
 mod serve;
 mod served_identities_wildtrack;
+mod sighup_early;
+mod subscriber_memory;
 mod train;

@@ -2,6 +2,7 @@
 //! 127.0.0.1:0 with a real exported ONNX model and real clients (tonic, reqwest, curl, Python
 //! grpcio). Fixtures: `crossview-testing`.
 
+mod auth_and_origin;
 mod bad_input;
 mod careless;
 mod connections;
@@ -17,7 +18,9 @@ mod ndjson_bounds;
 mod partial;
 mod python_client;
 mod record;
+mod record_disk;
 mod shutdown;
+mod subscriber_budget;
 mod sync_order;
 mod tls;
 mod tracking;

@@ -12,6 +12,45 @@ pub struct CameraSpec {
     pub height: u32,
 }
 
+impl CameraSpec {
+    /// Longest camera name in bytes (names travel in every result and in `/v1/scenes`).
+    pub const MAX_NAME_BYTES: usize = 128;
+    /// Largest image width or height in pixels.
+    pub const MAX_SIDE: u32 = 100_000;
+
+    /// The one rule for a camera wherever it is declared (`--scene`, a recording header, a
+    /// model file): a name of 1..=[`Self::MAX_NAME_BYTES`] bytes without control characters,
+    /// and an image of 1..=[`Self::MAX_SIDE`] pixels a side. The error says what is wrong.
+    pub fn check(&self) -> std::result::Result<(), String> {
+        let shown: String = self.name.chars().take(32).collect();
+        if self.name.trim().is_empty() {
+            return Err("a camera name is empty".into());
+        }
+        if self.name.len() > Self::MAX_NAME_BYTES {
+            return Err(format!(
+                "camera name '{shown}…' is {} bytes, more than {}",
+                self.name.len(),
+                Self::MAX_NAME_BYTES
+            ));
+        }
+        if self.name.chars().any(char::is_control) {
+            return Err(format!(
+                "camera name '{}' holds a control character",
+                shown.escape_debug()
+            ));
+        }
+        for (side, v) in [("width", self.width), ("height", self.height)] {
+            if v == 0 || v > Self::MAX_SIDE {
+                return Err(format!(
+                    "camera '{shown}' has {side} {v}; it must be 1..={}",
+                    Self::MAX_SIDE
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
 /// A scene: a named set of synchronized static cameras, in camera-index order.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct SceneSpec {

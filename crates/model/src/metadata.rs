@@ -93,22 +93,12 @@ impl ModelMetadata {
         }
         let mut seen = std::collections::HashSet::new();
         for (i, c) in self.cameras.iter().enumerate() {
-            if c.name.trim().is_empty() {
-                return Err(bad(KEY_CAMERAS, format!("camera {i} has an empty name")));
-            }
+            c.check()
+                .map_err(|e| bad(KEY_CAMERAS, format!("camera {i}: {e}")))?;
             if !seen.insert(c.name.as_str()) {
                 return Err(bad(
                     KEY_CAMERAS,
                     format!("duplicate camera name '{}'", c.name),
-                ));
-            }
-            if c.width == 0 || c.height == 0 {
-                return Err(bad(
-                    KEY_CAMERAS,
-                    format!(
-                        "camera '{}' has size {}x{}; width and height must be > 0",
-                        c.name, c.width, c.height
-                    ),
                 ));
             }
         }

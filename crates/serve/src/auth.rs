@@ -2,6 +2,12 @@
 //! readiness, metrics, the gRPC health service and the live viewer's page and assets (they
 //! hold no data; the page asks for the token and sends it on its API calls) are exempt. A gRPC caller gets an
 //! `UNAUTHENTICATED` status, an HTTP caller a 401.
+//!
+//! Authentication fails closed: a key source that yields a blank key is a start-up error
+//! ([`ApiKeys::new`]), never "no key, so no authentication". Independently of keys, a browser
+//! page of another origin cannot write: a state-changing request (anything but GET, HEAD and
+//! OPTIONS) that a browser marks as cross-origin (`Origin` not this server, or
+//! `Sec-Fetch-Site: cross-site`/`same-site`) is refused with 403 ([`same_origin`]).
 use std::sync::Arc;
 
 use axum::extract::{Request, State};
@@ -48,18 +54,28 @@ pub(crate) fn is_grpc(req: &Request) -> bool {
 }
 
 impl ApiKeys {
-    /// Accepts any of `keys` (blank entries ignored).
-    pub fn new(keys: &[String], metrics: Metrics) -> Self {
-        ApiKeys {
-            keys: Arc::new(
-                keys.iter()
-                    .map(|k| k.trim())
-                    .filter(|k| !k.is_empty())
-                    .map(|k| k.as_bytes().to_vec())
-                    .collect(),
-            ),
-            metrics,
+    /// Accepts any of `keys` (surrounding white space trimmed); no keys = authentication off.
+    /// A blank key is an error: it would otherwise turn authentication off silently.
+    pub fn new(keys: &[String], metrics: Metrics) -> Result<Self, Error> {
+        let mut out = Vec::with_capacity(keys.len());
+        for (i, k) in keys.iter().enumerate() {
+            let k = k.trim();
+            if k.is_empty() {
+                return Err(Error::invalid(
+                    "--api-key",
+                    format!(
+                        "API key {} of {} is blank; refusing to start",
+                        i + 1,
+                        keys.len()
+                    ),
+                ));
+            }
+            out.push(k.as_bytes().to_vec());
         }
+        Ok(ApiKeys {
+            keys: Arc::new(out),
+            metrics,
+        })
     }
 
     /// Checks the `authorization: Bearer <key>` header of a request.
@@ -75,10 +91,12 @@ impl ApiKeys {
             .to_str()
             .ok()
             .and_then(|h| {
-                h.strip_prefix("Bearer ")
-                    .or_else(|| h.strip_prefix("bearer "))
+                // The scheme is case-insensitive (RFC 9110 §11.1).
+                let (scheme, token) = h.trim_start().split_once(' ')?;
+                scheme.eq_ignore_ascii_case("bearer").then_some(token)
             })
             .map(str::trim)
+            .filter(|t| !t.is_empty())
             .ok_or_else(|| Error::Unauthenticated("expected 'Bearer <token>'".into()))?;
         if self.keys.iter().any(|k| ct_eq(k, token.as_bytes())) {
             Ok(())
@@ -107,6 +125,59 @@ pub(crate) async fn require_token(
     }
 }
 
+/// True when a browser marks `req` as made by a page of another origin: `Sec-Fetch-Site`
+/// says `cross-site` or `same-site`, or `Origin` is present and names another host than the
+/// request's `Host` (`null` included). Non-browser clients send neither header.
+fn cross_origin(req: &Request) -> bool {
+    let headers = req.headers();
+    if let Some(site) = headers.get("sec-fetch-site").and_then(|v| v.to_str().ok())
+        && (site.eq_ignore_ascii_case("cross-site") || site.eq_ignore_ascii_case("same-site"))
+    {
+        return true;
+    }
+    let Some(origin) = headers.get(http::header::ORIGIN) else {
+        return false;
+    };
+    let host = headers
+        .get(http::header::HOST)
+        .and_then(|v| v.to_str().ok())
+        .map(str::to_string)
+        .or_else(|| req.uri().authority().map(|a| a.to_string()));
+    let origin_host = origin
+        .to_str()
+        .ok()
+        .and_then(|o| o.split_once("://"))
+        .map(|(_, rest)| rest.trim_end_matches('/'));
+    match (origin_host, host) {
+        (Some(o), Some(h)) => !o.eq_ignore_ascii_case(&h),
+        _ => true,
+    }
+}
+
+/// The axum middleware refusing state-changing requests from pages of other origins (see
+/// the module docs): without it, any web page a user of the server's network opens could
+/// push batches or trigger reloads with a "simple" request that needs no CORS preflight.
+pub(crate) async fn same_origin(
+    State(metrics): State<Metrics>,
+    req: Request,
+    next: Next,
+) -> Response {
+    let safe = matches!(
+        *req.method(),
+        http::Method::GET | http::Method::HEAD | http::Method::OPTIONS
+    );
+    if safe || is_grpc(&req) || !cross_origin(&req) {
+        return next.run(req).await;
+    }
+    metrics.error_kind("forbidden");
+    let body = serde_json::json!({ "error": {
+        "kind": "forbidden",
+        "message": "cross-origin request refused: this API does not accept writes from web pages of other origins",
+        "field": null,
+    }});
+    (http::StatusCode::FORBIDDEN, axum::Json(body)).into_response()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -121,7 +192,7 @@ mod tests {
 
     #[test]
     fn tokens_are_checked_except_on_exempt_paths() {
-        let keys = ApiKeys::new(&["s3cret".into(), " other ".into()], Metrics::new());
+        let keys = ApiKeys::new(&["s3cret".into(), " other ".into()], Metrics::new()).unwrap();
         assert!(
             keys.check(&req("/v1/scenes", Some("Bearer s3cret")))
                 .is_ok()
@@ -141,7 +212,57 @@ mod tests {
             keys.check(&req("/grpc.health.v1.Health/Check", None))
                 .is_ok()
         );
-        let open = ApiKeys::new(&[], Metrics::new());
+        let open = ApiKeys::new(&[], Metrics::new()).unwrap();
         assert!(open.check(&req("/v1/scenes", None)).is_ok());
+        // The scheme is case-insensitive; an empty token is no token.
+        assert!(
+            keys.check(&req("/v1/scenes", Some("BEARER s3cret")))
+                .is_ok()
+        );
+        assert!(
+            keys.check(&req("/v1/scenes", Some("bEaReR  s3cret")))
+                .is_ok()
+        );
+        assert!(
+            keys.check(&req("/v1/scenes", Some("Basic s3cret")))
+                .is_err()
+        );
+        assert!(keys.check(&req("/v1/scenes", Some("Bearer "))).is_err());
+    }
+
+    #[test]
+    fn a_blank_key_is_an_error_not_authentication_off() {
+        for keys in [
+            vec![String::new()],
+            vec![" ".into()],
+            vec!["k".into(), "\t".into()],
+        ] {
+            assert!(ApiKeys::new(&keys, Metrics::new()).is_err(), "{keys:?}");
+        }
+    }
+
+    #[test]
+    fn pages_of_other_origins_are_told_apart() {
+        let r = |headers: &[(&str, &str)]| {
+            let mut b = http::Request::builder()
+                .uri("/v1/admin/reload")
+                .method("POST");
+            for (k, v) in headers {
+                b = b.header(*k, *v);
+            }
+            b.body(axum::body::Body::empty()).unwrap()
+        };
+        assert!(!cross_origin(&r(&[("host", "127.0.0.1:8080")])));
+        assert!(!cross_origin(&r(&[
+            ("host", "a:1"),
+            ("origin", "http://a:1")
+        ])));
+        assert!(cross_origin(&r(&[
+            ("host", "a:1"),
+            ("origin", "http://evil.example")
+        ])));
+        assert!(cross_origin(&r(&[("host", "a:1"), ("origin", "null")])));
+        assert!(cross_origin(&r(&[("sec-fetch-site", "cross-site")])));
+        assert!(!cross_origin(&r(&[("sec-fetch-site", "same-origin")])));
     }
 }

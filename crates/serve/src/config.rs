@@ -91,6 +91,9 @@ impl SceneDecl {
             }
         };
         validate_scene_name(&spec.name)?;
+        for c in &spec.cameras {
+            c.check().map_err(|e| Error::invalid("--scene", e))?;
+        }
         if spec.cameras.is_empty() {
             return Err(Error::invalid("--scene", format!("'{s}' names no camera")));
         }
@@ -117,14 +120,13 @@ fn parse_camera(s: &str) -> Result<CameraSpec> {
     let (w, h) = size.split_once('x').ok_or_else(bad)?;
     let (width, height): (u32, u32) =
         (w.parse().map_err(|_| bad())?, h.parse().map_err(|_| bad())?);
-    if name.is_empty() || width == 0 || height == 0 || width > 100_000 || height > 100_000 {
-        return Err(bad());
-    }
-    Ok(CameraSpec {
+    let camera = CameraSpec {
         name: name.to_string(),
         width,
         height,
-    })
+    };
+    camera.check().map_err(|e| Error::invalid("--scene", e))?;
+    Ok(camera)
 }
 
 /// Scene names travel in URL paths: keep them to `[A-Za-z0-9._-]`, 1..=64 characters.
@@ -217,6 +219,12 @@ pub struct ConnectionLimits {
     /// A result subscriber (gRPC `Subscribe`/`Stream`, SSE) that has not taken a published
     /// result for this long while results wait for it is disconnected.
     pub subscriber_stall_timeout: Duration,
+    /// Memory all result subscribers together may cost (bytes; each is charged a fixed
+    /// worst case, see [`crate::subscribers`]). At the budget a new subscription displaces
+    /// the subscriber furthest behind, or is refused when all keep up.
+    pub subscriber_memory: usize,
+    /// Most result subscriptions one connection may hold.
+    pub max_subscriptions_per_connection: usize,
 }
 
 impl Default for ConnectionLimits {
@@ -229,6 +237,8 @@ impl Default for ConnectionLimits {
             http2_max_streams: 100,
             http2_keepalive: Duration::from_secs(30),
             subscriber_stall_timeout: Duration::from_secs(30),
+            subscriber_memory: 256 << 20,
+            max_subscriptions_per_connection: 64,
         }
     }
 }
@@ -252,8 +262,10 @@ pub struct ServeConfig {
     pub sync_timeout: Duration,
     /// Pending frames per scene beyond which the oldest leaves as partial.
     pub max_pending_frames: usize,
-    /// Accepted bearer tokens; empty = no authentication.
+    /// Accepted bearer tokens; empty = no authentication. A blank token is a start-up error.
     pub api_keys: Vec<String>,
+    /// Serve without API keys on an address beyond loopback (otherwise a start-up error).
+    pub allow_unauthenticated: bool,
     /// Serve TLS (rustls) when set.
     pub tls: Option<TlsConfig>,
     /// Size, cost and queue caps.
@@ -286,6 +298,7 @@ impl std::fmt::Debug for ServeConfig {
                 "api_keys",
                 &format_args!("<{} redacted>", self.api_keys.len()),
             )
+            .field("allow_unauthenticated", &self.allow_unauthenticated)
             .field("tls", &self.tls)
             .field("limits", &self.limits)
             .field("connections", &self.connections)
@@ -306,6 +319,7 @@ impl Default for ServeConfig {
             sync_timeout: Duration::from_millis(200),
             max_pending_frames: 64,
             api_keys: Vec::new(),
+            allow_unauthenticated: false,
             tls: None,
             limits: Limits::default(),
             connections: ConnectionLimits::default(),
@@ -340,6 +354,30 @@ mod tests {
         let e = SceneDecl::parse(big.to_str().unwrap()).unwrap_err();
         assert!(e.to_string().contains("exceeds"), "{e}");
         assert!(SceneDecl::parse("/no/such/file.jsonl").is_err());
+        // A header holds the cameras to the same rule as the inline form.
+        let bad_headers = [
+            r#"{"width": 0, "height": 6, "name": "c"}"#.to_string(),
+            r#"{"width": 4294967295, "height": 6, "name": "c"}"#.to_string(),
+            r#"{"width": 8, "height": 4294967295, "name": "c"}"#.to_string(),
+            r#"{"width": 8, "height": 6, "name": ""}"#.to_string(),
+            r#"{"width": 8, "height": 6, "name": "a\u0000b"}"#.to_string(),
+            format!(
+                r#"{{"width": 8, "height": 6, "name": "{}"}}"#,
+                "x".repeat(500_000)
+            ),
+        ];
+        for cam in bad_headers {
+            let p = dir.path().join("bad.json");
+            std::fs::write(
+                &p,
+                format!(r#"{{"scene": {{"name": "hall", "cameras": [{cam}]}}}}"#),
+            )
+            .unwrap();
+            let e = SceneDecl::parse(p.to_str().unwrap());
+            assert!(e.is_err(), "{}", &cam[..cam.len().min(80)]);
+        }
+        assert!(SceneDecl::parse("lab=:640x480").is_err());
+        assert!(SceneDecl::parse(&format!("lab={}:640x480", "y".repeat(200))).is_err());
     }
 
     #[test]

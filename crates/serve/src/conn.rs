@@ -36,6 +36,8 @@ const CLOSE_GRACE: Duration = Duration::from_secs(1);
 /// The state of one open connection, shared with its requests.
 #[derive(Debug)]
 pub(crate) struct ConnState {
+    /// Unique among the server's connections.
+    id: u64,
     accepted: Instant,
     /// Requests in flight (head received, response body not yet finished or dropped).
     active: AtomicUsize,
@@ -54,8 +56,9 @@ pub(crate) struct ConnState {
 }
 
 impl ConnState {
-    fn new(now: Instant) -> Self {
+    fn new(id: u64, now: Instant) -> Self {
         ConnState {
+            id,
             accepted: now,
             active: AtomicUsize::new(0),
             started: AtomicU64::new(0),
@@ -110,6 +113,11 @@ impl Drop for ActiveGuard {
 pub struct ConnHandle(pub(crate) Arc<ConnState>);
 
 impl ConnHandle {
+    /// The connection's id (unique among the server's connections).
+    pub(crate) fn id(&self) -> u64 {
+        self.0.id
+    }
+
     /// Drops the connection at once (every request on it ends).
     pub fn kill(&self) {
         self.0.closing.store(true, Ordering::Release);
@@ -199,7 +207,7 @@ impl Connections {
             }
         }
         let id = self.next_id.fetch_add(1, Ordering::Relaxed);
-        let state = Arc::new(ConnState::new(now));
+        let state = Arc::new(ConnState::new(id, now));
         open.insert(id, state.clone());
         let n = open.len();
         drop(open);

@@ -83,14 +83,55 @@ impl IntoResponse for HttpError {
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct UncountedError(pub &'static str);
 
-/// A JSON body whose decoding errors are [`Error::InvalidArgument`] (422, naming `body`), while
-/// the body-size limit still answers 413.
+/// The media type of a request body (`Content-Type` without parameters, lower case).
+fn media_type(headers: &http::HeaderMap) -> Option<String> {
+    let v = headers.get(http::header::CONTENT_TYPE)?.to_str().ok()?;
+    Some(
+        v.split(';')
+            .next()
+            .unwrap_or("")
+            .trim()
+            .to_ascii_lowercase(),
+    )
+}
+
+/// True for `application/json` and `application/*+json`.
+fn is_json(media: Option<&str>) -> bool {
+    media.is_some_and(|m| {
+        m == "application/json" || (m.starts_with("application/") && m.ends_with("+json"))
+    })
+}
+
+/// 415 for a body that is not of the media types a route takes. Requiring JSON (or JSON
+/// Lines) is what keeps a web page of another origin from writing with a "simple" request
+/// (`text/plain`, forms) that browsers send without a CORS preflight.
+fn unsupported_media_type(got: Option<&str>, want: &str) -> Response {
+    let kind = "unsupported_media_type";
+    let message = format!(
+        "Content-Type {} is not accepted here; send {want}",
+        got.map_or_else(
+            || "(none)".to_string(),
+            |g| format!("'{}'", super::truncate_echo(g))
+        )
+    );
+    let body = serde_json::json!({ "error": { "kind": kind, "message": message, "field": "content-type" } });
+    let mut resp = (StatusCode::UNSUPPORTED_MEDIA_TYPE, Json(body)).into_response();
+    resp.extensions_mut().insert(UncountedError(kind));
+    resp
+}
+
+/// A JSON body (`Content-Type: application/json`, else 415) whose decoding errors are
+/// [`Error::InvalidArgument`] (422, naming `body`), while the body-size limit still answers 413.
 pub(crate) struct JsonBody<T>(pub T);
 
 impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for JsonBody<T> {
     type Rejection = Response;
 
     async fn from_request(req: Request, state: &S) -> Result<Self, Self::Rejection> {
+        let media = media_type(req.headers());
+        if !is_json(media.as_deref()) {
+            return Err(unsupported_media_type(media.as_deref(), "application/json"));
+        }
         let bytes = Bytes::from_request(req, state)
             .await
             .map_err(IntoResponse::into_response)?;
@@ -153,13 +194,11 @@ async fn associate(
 }
 
 /// True when the body is JSON Lines (a SPEC §7 recording or several batch lines).
-fn is_json_lines(headers: &http::HeaderMap) -> bool {
-    headers
-        .get(http::header::CONTENT_TYPE)
-        .and_then(|v| v.to_str().ok())
-        .is_some_and(|v| {
-            v.starts_with("application/x-ndjson") || v.starts_with("application/jsonl")
-        })
+fn is_json_lines(media: Option<&str>) -> bool {
+    matches!(
+        media,
+        Some("application/x-ndjson" | "application/jsonl" | "application/jsonlines")
+    )
 }
 
 async fn push_batch(
@@ -168,7 +207,8 @@ async fn push_batch(
     headers: http::HeaderMap,
     body: Bytes,
 ) -> Result<Response, HttpError> {
-    if is_json_lines(&headers) {
+    let media = media_type(&headers);
+    if is_json_lines(media.as_deref()) {
         let max_rejected = svc.scene(&scene)?.limits().max_rejected_lines;
         let lines = LineRun::new(svc, scene, body, max_rejected);
         return Ok((
@@ -176,6 +216,12 @@ async fn push_batch(
             axum::body::Body::from_stream(lines.into_stream()),
         )
             .into_response());
+    }
+    if !is_json(media.as_deref()) {
+        return Ok(unsupported_media_type(
+            media.as_deref(),
+            "application/json (one batch) or application/x-ndjson (batch lines)",
+        ));
     }
     let batch: Batch = serde_json::from_slice(&body)
         .map_err(|e| Error::invalid("body", e.to_string()))

@@ -26,6 +26,7 @@ pub mod registry;
 pub mod reload;
 pub mod scene;
 pub mod service;
+pub(crate) mod subscribers;
 pub mod sync;
 pub mod tls;
 pub mod viewer;
@@ -77,6 +78,10 @@ pub struct Server {
     service: Arc<Service>,
     config: ServeConfig,
     recorder: Option<Arc<record::Recorder>>,
+    /// `SIGHUP` listener taken before the models loaded ([`run`]), so a reload asked for
+    /// while they load is served once the server runs.
+    #[cfg(unix)]
+    hangup: Option<tokio::signal::unix::Signal>,
 }
 
 impl Server {
@@ -164,11 +169,14 @@ impl Server {
         Ok(Server {
             service: Arc::new(
                 Service::new(started, metrics)
+                    .with_subscriber_limits(&config.connections)
                     .with_stall_timeout(config.connections.subscriber_stall_timeout)
                     .with_reloader(reloader),
             ),
             config,
             recorder,
+            #[cfg(unix)]
+            hangup: None,
         })
     }
 
@@ -186,13 +194,14 @@ impl Server {
     /// stops intake, flushes pending frames as partial results to subscribers, waits up to
     /// `shutdown_grace` for open connections and returns.
     pub async fn serve(
-        self,
+        mut self,
         listener: TcpListener,
         shutdown: impl Future<Output = ()> + Send,
     ) -> Result<()> {
         let router = self.router().await?;
         let tls = self.config.tls.as_ref().map(tls::acceptor).transpose()?;
         let addr = listener.local_addr().ok();
+        check_exposure(&self.config, addr)?;
         tracing::info!(?addr, tls = tls.is_some(), "serving gRPC + HTTP");
         for scene in self.service.scene_list() {
             spawn_timer(scene, self.service.shutting_down());
@@ -203,19 +212,27 @@ impl Server {
         };
         #[cfg(unix)]
         if self.config.reload_on_sighup {
-            reload::spawn_on_sighup(self.service.clone())?;
+            let hup = match self.hangup.take() {
+                Some(h) => h,
+                None => reload::listen_sighup()?,
+            };
+            reload::spawn_on_sighup(self.service.clone(), hup);
         }
         let limits = self.config.connections;
         let connections = conn::Connections::new(limits, self.service.metrics().clone());
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
         let mut builder = auto::Builder::new(TokioExecutor::new());
+        // Encoded results a stream that is not read may hold in the transport are bounded
+        // (subscribers::TRANSPORT_BUFFER): the subscriber budget charges each stream for it.
         builder
             .http1()
             .timer(TokioTimer::new())
+            .max_buf_size(subscribers::TRANSPORT_BUFFER)
             .header_read_timeout(limits.header_read_timeout);
         builder
             .http2()
             .timer(TokioTimer::new())
+            .max_send_buf_size(subscribers::TRANSPORT_BUFFER)
             .max_concurrent_streams(limits.http2_max_streams)
             .keep_alive_interval(limits.http2_keepalive)
             .keep_alive_timeout(limits.http2_keepalive);
@@ -334,15 +351,50 @@ impl Server {
     }
 }
 
+/// Refuses to serve without API keys on an address beyond loopback unless the configuration
+/// says so explicitly (`allow_unauthenticated`): anyone who can reach the port could otherwise
+/// push, read and reload.
+fn check_exposure(config: &ServeConfig, addr: Option<std::net::SocketAddr>) -> Result<()> {
+    let exposed = addr.is_none_or(|a| !a.ip().is_loopback());
+    if config.api_keys.is_empty() && exposed && !config.allow_unauthenticated {
+        return Err(Error::invalid(
+            "--listen",
+            format!(
+                "refusing to serve without an API key on {}, beyond loopback: give --api-key / --api-key-file, listen on 127.0.0.1, or pass --allow-unauthenticated",
+                addr.map_or_else(|| "an unknown address".to_string(), |a| a.to_string())
+            ),
+        ));
+    }
+    if config.api_keys.is_empty() && exposed {
+        tracing::warn!(
+            ?addr,
+            "serving WITHOUT authentication beyond loopback (--allow-unauthenticated)"
+        );
+    }
+    Ok(())
+}
+
 /// Loads the models (off the async runtime) and serves until `shutdown` (see [`Server::serve`]).
 pub async fn run(
     config: ServeConfig,
     listener: TcpListener,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<()> {
-    let server = tokio::task::spawn_blocking(move || Server::load(config))
+    // Listen for SIGHUP before the (slow) model loading: a reload asked for meanwhile must
+    // neither end the process (the signal's default) nor be lost.
+    #[cfg(unix)]
+    let hangup = match config.reload_on_sighup {
+        true => Some(reload::listen_sighup()?),
+        false => None,
+    };
+    #[allow(unused_mut)]
+    let mut server = tokio::task::spawn_blocking(move || Server::load(config))
         .await
         .map_err(|e| Error::internal_from("model loading task failed", e))??;
+    #[cfg(unix)]
+    {
+        server.hangup = hangup;
+    }
     server.serve(listener, shutdown).await
 }
 
@@ -448,7 +500,7 @@ async fn build_router(svc: &Arc<Service>, config: &ServeConfig) -> Result<Router
         max_bytes: limit,
         timeout: body_timeout,
     };
-    let keys = auth::ApiKeys::new(&config.api_keys, svc.metrics().clone());
+    let keys = auth::ApiKeys::new(&config.api_keys, svc.metrics().clone())?;
     Ok(router
         .merge(
             http::router(svc.clone(), limit).layer(middleware::from_fn_with_state(
@@ -458,6 +510,10 @@ async fn build_router(svc: &Arc<Service>, config: &ServeConfig) -> Result<Router
         )
         .fallback(fallback)
         .layer(middleware::from_fn_with_state(keys, auth::require_token))
+        .layer(middleware::from_fn_with_state(
+            svc.metrics().clone(),
+            auth::same_origin,
+        ))
         .layer(middleware::from_fn_with_state(
             svc.metrics().clone(),
             track_requests,

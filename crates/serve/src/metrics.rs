@@ -224,6 +224,16 @@ impl Metrics {
             .set(lag.max(0) as f64);
     }
 
+    /// Result subscribers disconnected to keep a bound (`reason`: `budget`).
+    pub(crate) fn subscribers_dropped(&self, reason: &'static str, n: u64) {
+        self.recorder
+            .register_counter(
+                &key("crossview_subscribers_dropped_total", &[("reason", reason)]),
+                &META,
+            )
+            .increment(n);
+    }
+
     /// Live result subscribers (gRPC Subscribe/Stream and SSE) of a scene.
     pub fn subscribers(&self, scene: &str, n: usize) {
         self.recorder

@@ -118,12 +118,18 @@ fn refused(spec: &ModelSpec, version: Option<String>, e: &Error) -> ReloadOutcom
     }
 }
 
-/// Reloads on every `SIGHUP` until the service shuts down (the usual Unix convention).
+/// Starts listening for `SIGHUP`: from this call on the signal no longer ends the process,
+/// and one that arrives before [`spawn_on_sighup`] runs is delivered to it then.
 #[cfg(unix)]
-pub(crate) fn spawn_on_sighup(service: Arc<Service>) -> crossview_core::Result<()> {
+pub(crate) fn listen_sighup() -> crossview_core::Result<tokio::signal::unix::Signal> {
     use tokio::signal::unix::{SignalKind, signal};
-    let mut hup = signal(SignalKind::hangup())
-        .map_err(|e| Error::internal_from("cannot listen for SIGHUP", e))?;
+    signal(SignalKind::hangup()).map_err(|e| Error::internal_from("cannot listen for SIGHUP", e))
+}
+
+/// Reloads on every `SIGHUP` of `hup` until the service shuts down (the usual Unix
+/// convention).
+#[cfg(unix)]
+pub(crate) fn spawn_on_sighup(service: Arc<Service>, mut hup: tokio::signal::unix::Signal) {
     let stop = service.shutting_down();
     tokio::spawn(async move {
         tokio::pin!(stop);
@@ -138,5 +144,4 @@ pub(crate) fn spawn_on_sighup(service: Arc<Service>) -> crossview_core::Result<(
             }
         }
     });
-    Ok(())
 }

@@ -11,10 +11,12 @@ use tokio::sync::watch;
 use tokio_stream::wrappers::BroadcastStream;
 use tokio_stream::wrappers::errors::BroadcastStreamRecvError;
 
+use super::config::ConnectionLimits;
 use super::conn::ConnHandle;
 use super::metrics::Metrics;
 use super::reload::{ReloadOutcome, Reloader};
 use super::scene::Scene;
+use super::subscribers::Subscribers;
 use crossview_api::types::{
     AssociateRequest, BatchAck, FrameResult, FrameWithBoxes, SceneDescription,
 };
@@ -38,6 +40,8 @@ pub struct Service {
     shutdown: watch::Sender<bool>,
     stall_timeout: Option<Duration>,
     reloader: Option<Reloader>,
+    /// The subscriber budget ([`crate::subscribers`]).
+    subscribers: Arc<Subscribers>,
 }
 
 impl Service {
@@ -49,13 +53,20 @@ impl Service {
                 .into_iter()
                 .map(|s| (s.name().to_string(), s))
                 .collect(),
-            metrics,
+            metrics: metrics.clone(),
             ready: AtomicBool::new(true),
             consumer_ready: AtomicBool::new(true),
             shutdown,
             stall_timeout: None,
             reloader: None,
+            subscribers: Subscribers::new(&ConnectionLimits::default(), metrics),
         }
+    }
+
+    /// Bounds the result subscribers by `limits`' subscriber budget.
+    pub(crate) fn with_subscriber_limits(mut self, limits: &ConnectionLimits) -> Self {
+        self.subscribers = Subscribers::new(limits, self.metrics.clone());
+        self
     }
 
     /// Reloads these model files on [`Self::reload`].
@@ -154,10 +165,11 @@ impl Service {
         stall_timeout: Option<Duration>,
     ) -> Result<ResultStream> {
         let s = self.scene(scene)?;
+        let taken = Arc::new(AtomicU64::new(0));
+        let ticket = self.track(self.subscribers.admit(s, conn.as_ref(), &taken))?;
         let (rx, guard) = self.track(s.subscribe())?;
         let metrics = self.metrics.clone();
         let mut failed = false;
-        let taken = Arc::new(AtomicU64::new(0));
         if let (Some(conn), Some(stall)) = (conn, stall_timeout) {
             tokio::spawn(watch_stall(
                 s.clone(),
@@ -170,8 +182,9 @@ impl Service {
         }
         let stream = BroadcastStream::new(rx)
             .map(move |item| {
-                // The stream owns the guard: the subscriber is counted while it lives.
-                let _ = &guard;
+                // The stream owns the guard and the ticket: the subscriber is counted (and
+                // charged against the budget) while it lives.
+                let _ = (&guard, &ticket);
                 taken.fetch_add(1, Ordering::AcqRel);
                 item
             })

@@ -5,6 +5,7 @@
 //! Chromium ([`browser`]).
 
 pub mod browser;
+pub mod h2client;
 pub mod kafka;
 
 use std::future::Future;

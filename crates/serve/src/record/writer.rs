@@ -1,244 +1,20 @@
-//! Recording of every accepted batch (`crossview serve --record DIR`), in the SPEC §7 format,
-//! to rotating files, without ever holding up association.
-//!
-//! **Layout.** One directory per scene, `DIR/<scene>/`, holding files named
-//! `<seq>-<UTC time>.jsonl` (`seq` ten digits, one counter over the whole of `DIR`, so names
-//! sort in the order the files were started). Each file begins with its scene header line and
-//! is a valid recording on its own; a scene's files together (read in name order, e.g.
-//! `crossview eval --data DIR/<scene>`) are the scene's accepted batches in acceptance order.
-//!
-//! **Rotation and retention.** A scene's file is closed (flushed and `fsync`ed) and the next
-//! one started when the next line would take it past `max_file_bytes`, or when a batch arrives
-//! once the file is `max_file_age` old. The recording files under `DIR` (every scene, also
-//! scenes not served now) never take more than `max_bytes` together: before a line is written,
-//! the oldest files (lowest `seq`) are removed until it fits — the oldest file may be a scene's
-//! current one, which then starts afresh.
-//!
-//! **Never in the way.** [`SceneRecorder::record`] only hands the batch (already validated and
-//! accepted) to a bounded in-memory queue (`queue_bytes`, an estimate of the batches' memory)
-//! read by one dedicated writer thread; it never blocks and never does I/O. A batch that does
-//! not fit is not recorded and counted (`crossview_record_dropped_total{reason="queue_full"}`).
-//! The writer serializes the lines, buffers them (up to 64 KiB per file) and writes whole lines
-//! with one `write` call, whenever the buffer fills or the queue runs dry (so what was accepted
-//! reaches the kernel within moments even at a trickle). A write error is logged (rate-limited)
-//! and counted (`crossview_record_write_errors_total`; the lost batches in
-//! `crossview_record_dropped_total{reason="write_error"}`); the file is cut back to its last
-//! complete write and the next batch starts a new file. It never stops the server.
-//!
-//! **Crash safety.** A line is only ever written after the lines before it, so after a crash
-//! (SIGKILL, power loss) only the *last* line of a file can be incomplete. At start-up the
-//! recorder repairs every recording file under `DIR`: a tail after the last newline is cut
-//! off (a file with no complete line, or an empty one, is removed), and it always starts new
-//! files, never appending to old ones. Readers (`crossview_data`) also drop a torn last line of
-//! each file with a count, so a recording can be read before a restart too. Graceful shutdown
-//! drains the queue, writes and `fsync`s every file.
+//! The recorder's writer thread: serializes accepted batches into the scenes' files, rotates
+//! them, keeps every file under `DIR` within `max_bytes` (its books following the disk) and
+//! repairs torn tails at start-up (see the parent module's docs).
 use std::collections::BTreeMap;
 use std::fs::{File, OpenOptions};
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-use std::sync::mpsc::{Receiver, Sender, TryRecvError};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::mpsc::{Receiver, TryRecvError};
 use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
-use crossview_core::{Detection, Error, Result, SceneSpec};
-
+use super::{Msg, RecordConfig, WRITE_CHUNK};
 use crate::metrics::Metrics;
-
-/// A file's buffer is written out once it holds this much.
-const WRITE_CHUNK: usize = 64 << 10;
-
-/// Where and how `crossview serve --record` writes (see the module docs).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct RecordConfig {
-    /// The recording directory; one sub-directory per scene.
-    pub dir: PathBuf,
-    /// A file is rotated before it would grow past this many bytes.
-    pub max_file_bytes: u64,
-    /// A file is rotated when a batch arrives once it is this old.
-    pub max_file_age: Duration,
-    /// All recording files under `dir` together stay within this many bytes (the oldest
-    /// files are removed first).
-    pub max_bytes: u64,
-    /// Memory (an estimate) of the batches waiting for the writer; beyond it batches are not
-    /// recorded (and counted).
-    pub queue_bytes: usize,
-}
-
-impl RecordConfig {
-    /// Defaults for recording into `dir`: 64 MiB files, rotated after 10 minutes, 1 GiB in
-    /// all, a 64 MiB queue.
-    pub fn new(dir: impl Into<PathBuf>) -> Self {
-        RecordConfig {
-            dir: dir.into(),
-            max_file_bytes: 64 << 20,
-            max_file_age: Duration::from_secs(600),
-            max_bytes: 1 << 30,
-            queue_bytes: 64 << 20,
-        }
-    }
-
-    fn validate(&self) -> Result<()> {
-        if self.max_file_bytes == 0 || self.max_bytes == 0 || self.queue_bytes == 0 {
-            return Err(Error::invalid(
-                "--record",
-                "--record-max-file-bytes, --record-max-bytes and --record-queue-bytes must be positive",
-            ));
-        }
-        if self.max_file_bytes > self.max_bytes {
-            return Err(Error::invalid(
-                "--record-max-file-bytes",
-                format!(
-                    "{} is more than --record-max-bytes {}",
-                    self.max_file_bytes, self.max_bytes
-                ),
-            ));
-        }
-        if self.max_file_age.is_zero() {
-            return Err(Error::invalid("--record-max-file-age", "must be positive"));
-        }
-        Ok(())
-    }
-}
-
-/// One accepted batch on its way to the writer.
-enum Msg {
-    Batch {
-        scene: usize,
-        camera: String,
-        frame_id: u64,
-        detections: Vec<Detection>,
-        cost: usize,
-    },
-    Stop,
-}
-
-/// The server's recorder: the queue to the writer thread (see the module docs).
-pub(crate) struct Recorder {
-    tx: Sender<Msg>,
-    queued: Arc<AtomicUsize>,
-    capacity: usize,
-    closed: AtomicBool,
-    metrics: Metrics,
-    names: Vec<String>,
-    writer: Mutex<Option<std::thread::JoinHandle<()>>>,
-}
-
-impl std::fmt::Debug for Recorder {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Recorder")
-            .field("scenes", &self.names)
-            .finish()
-    }
-}
-
-/// One scene's handle on the server's recorder (see the module docs).
-#[derive(Clone)]
-pub struct SceneRecorder {
-    recorder: Arc<Recorder>,
-    scene: usize,
-}
-
-impl Recorder {
-    /// Prepares `config.dir` (creates it and the scenes' directories, repairs torn tails,
-    /// applies the size bound) and starts the writer thread.
-    pub(crate) fn start(
-        config: RecordConfig,
-        scenes: &[SceneSpec],
-        metrics: Metrics,
-    ) -> Result<Arc<Recorder>> {
-        config.validate()?;
-        let writer = Writer::open(config.clone(), scenes, metrics.clone())?;
-        let (tx, rx) = std::sync::mpsc::channel();
-        let queued = Arc::new(AtomicUsize::new(0));
-        let q = queued.clone();
-        let handle = std::thread::Builder::new()
-            .name("recorder".into())
-            .spawn(move || writer.run(rx, q))
-            .map_err(|e| Error::internal_from("cannot start the recorder thread", e))?;
-        tracing::info!(dir = %config.dir.display(), max_file_bytes = config.max_file_bytes,
-            max_file_age = ?config.max_file_age, max_bytes = config.max_bytes, "recording accepted batches");
-        Ok(Arc::new(Recorder {
-            tx,
-            queued,
-            capacity: config.queue_bytes,
-            closed: AtomicBool::new(false),
-            metrics,
-            names: scenes.iter().map(|s| s.name.clone()).collect(),
-            writer: Mutex::new(Some(handle)),
-        }))
-    }
-
-    /// The handle for scene number `scene` (its index in the `scenes` given to
-    /// [`Recorder::start`]).
-    pub(crate) fn scene(self: &Arc<Self>, scene: usize) -> SceneRecorder {
-        SceneRecorder {
-            recorder: self.clone(),
-            scene,
-        }
-    }
-
-    /// Stops the writer once it has written everything queued (flushed and `fsync`ed).
-    /// Blocking; call after the scenes stopped accepting batches.
-    pub(crate) fn close(&self) {
-        if self.closed.swap(true, Ordering::AcqRel) {
-            return;
-        }
-        let _ = self.tx.send(Msg::Stop);
-        if let Some(h) = lock(&self.writer).take()
-            && h.join().is_err()
-        {
-            tracing::error!("recorder thread panicked");
-        }
-    }
-}
-
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-/// Memory a queued batch holds (an estimate, for the queue bound).
-fn batch_cost(camera: &str, detections: &[Detection]) -> usize {
-    let vectors: usize = detections
-        .iter()
-        .map(|d| d.appearance.as_ref().map_or(0, |a| a.len() * 4))
-        .sum();
-    128 + camera.len() + std::mem::size_of_val(detections) + vectors
-}
-
-impl SceneRecorder {
-    /// Queues one accepted batch for the writer; never blocks. Call it where the batch is
-    /// accepted, under the scene's intake lock, so batches are written in acceptance order.
-    /// A batch the queue has no room for is counted as dropped.
-    pub(crate) fn record(&self, camera: &str, frame_id: u64, detections: Vec<Detection>) {
-        let r = &*self.recorder;
-        let name = &r.names[self.scene];
-        let cost = batch_cost(camera, &detections);
-        let reserved = r
-            .queued
-            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |q| {
-                (q + cost <= r.capacity && !r.closed.load(Ordering::Acquire)).then_some(q + cost)
-            })
-            .is_ok();
-        if !reserved {
-            r.metrics.record_dropped(name, "queue_full", 1);
-            return;
-        }
-        let msg = Msg::Batch {
-            scene: self.scene,
-            camera: camera.to_string(),
-            frame_id,
-            detections,
-            cost,
-        };
-        if r.tx.send(msg).is_err() {
-            r.queued.fetch_sub(cost, Ordering::AcqRel);
-            r.metrics.record_dropped(name, "write_error", 1);
-        }
-    }
-}
+use crossview_core::{Detection, Error, Result, SceneSpec};
 
 /// The header line of a recording file.
 #[derive(Serialize)]
@@ -262,7 +38,23 @@ struct FileEntry {
     bytes: u64,
     /// The served scene writing it now, if it is a scene's current file.
     open_by: Option<usize>,
+    /// Removing it failed (logged once): it stays on disk, so it stays counted.
+    remove_failed: bool,
 }
+
+/// What [`Writer::make_room`] achieved.
+#[derive(Debug, PartialEq, Eq)]
+enum Room {
+    /// The bytes fit now.
+    Made,
+    /// It removed the writing scene's current file: start a new one and ask again.
+    RemovedCurrent,
+    /// No file that could be removed is left and the bytes still do not fit.
+    Full,
+}
+
+/// How often the writer checks its accounting against the disk (files removed from outside).
+const RECONCILE_EVERY: Duration = Duration::from_secs(1);
 
 /// A scene's current file.
 struct OpenFile {
@@ -285,7 +77,7 @@ struct SceneState {
 }
 
 /// The writer thread's state: every recording file under `DIR` and the scenes' open files.
-struct Writer {
+pub(super) struct Writer {
     config: RecordConfig,
     metrics: Metrics,
     scenes: Vec<SceneState>,
@@ -294,6 +86,8 @@ struct Writer {
     total: u64,
     next_seq: u64,
     line: Vec<u8>,
+    /// When the books were last checked against the disk ([`Writer::reconcile`]).
+    last_reconcile: Instant,
 }
 
 /// The sequence number of a recording file name `<seq>-<...>.jsonl`.
@@ -346,7 +140,11 @@ fn io_err(path: &Path, e: std::io::Error) -> Error {
 }
 
 impl Writer {
-    fn open(config: RecordConfig, scenes: &[SceneSpec], metrics: Metrics) -> Result<Writer> {
+    pub(super) fn open(
+        config: RecordConfig,
+        scenes: &[SceneSpec],
+        metrics: Metrics,
+    ) -> Result<Writer> {
         let dir = &config.dir;
         std::fs::create_dir_all(dir).map_err(|e| io_err(dir, e))?;
         let mut states = Vec::new();
@@ -397,6 +195,7 @@ impl Writer {
                                 path,
                                 bytes,
                                 open_by: None,
+                                remove_failed: false,
                             },
                         );
                     }
@@ -415,13 +214,14 @@ impl Writer {
             total,
             next_seq,
             line: Vec::new(),
+            last_reconcile: Instant::now(),
         };
         writer.make_room(0, None);
         writer.gauge();
         Ok(writer)
     }
 
-    fn run(mut self, rx: Receiver<Msg>, queued: Arc<AtomicUsize>) {
+    pub(super) fn run(mut self, rx: Receiver<Msg>, queued: Arc<AtomicUsize>) {
         loop {
             let msg = match rx.try_recv() {
                 Ok(m) => m,
@@ -478,6 +278,7 @@ impl Writer {
                 self.close_file(s);
             }
         }
+        self.reconcile();
         // Room for the line (and the header of a new file), oldest files first.
         loop {
             let header = if self.scenes[s].open.is_none() {
@@ -485,8 +286,15 @@ impl Writer {
             } else {
                 0
             };
-            if !self.make_room(len + header, Some(s)) {
-                break;
+            match self.make_room(len + header, Some(s)) {
+                Room::Made => break,
+                Room::RemovedCurrent => continue,
+                Room::Full => {
+                    // Old files that cannot be removed fill the budget: the bound wins.
+                    self.metrics
+                        .record_dropped(&self.scenes[s].name, "no_room", 1);
+                    return;
+                }
             }
         }
         if self.scenes[s].open.is_none()
@@ -511,38 +319,76 @@ impl Writer {
         }
     }
 
-    /// Removes the oldest files until `need` more bytes fit within `max_bytes`. Returns true
-    /// when it removed the current file of scene `writing` (whose caller must then start a new
-    /// file, with a header, and ask again).
-    fn make_room(&mut self, need: u64, writing: Option<usize>) -> bool {
+    /// Removes the oldest files until `need` more bytes fit within `max_bytes`. A file that
+    /// cannot be removed stays on disk and so stays counted (the next oldest is tried): the
+    /// bound holds on disk, not only in the books. `Full` when nothing more can be removed.
+    fn make_room(&mut self, need: u64, writing: Option<usize>) -> Room {
+        let mut stuck: Vec<u64> = Vec::new();
         while self.total + need > self.config.max_bytes {
-            let Some((seq, entry)) = self.files.pop_first() else {
-                return false;
+            let Some(seq) = self.files.keys().find(|k| !stuck.contains(k)).copied() else {
+                return Room::Full;
             };
-            if let Some(s) = entry.open_by {
-                // A scene's current file: drop its handle and buffer (those lines are removed
-                // with the file; they count as recorded, then removed as the oldest).
-                if let Some(f) = self.scenes[s].open.take() {
-                    self.metrics
-                        .record_written(&self.scenes[s].name, f.buffered_lines, 0);
-                }
-            }
-            self.total = self.total.saturating_sub(entry.bytes);
-            match std::fs::remove_file(&entry.path) {
+            let path = self.files[&seq].path.clone();
+            match std::fs::remove_file(&path) {
                 Ok(()) => {
-                    tracing::debug!(path = %entry.path.display(), seq, "removed the oldest recording file (--record-max-bytes)")
+                    tracing::debug!(path = %path.display(), seq, "removed the oldest recording file (--record-max-bytes)")
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                    tracing::debug!(path = %path.display(), seq, "an old recording file was already gone")
                 }
                 Err(e) => {
-                    tracing::warn!(path = %entry.path.display(), error = %e, "cannot remove an old recording file")
+                    if let Some(entry) = self.files.get_mut(&seq)
+                        && !std::mem::replace(&mut entry.remove_failed, true)
+                    {
+                        tracing::warn!(path = %path.display(), error = %e, "cannot remove an old recording file; it stays counted against --record-max-bytes");
+                    }
+                    stuck.push(seq);
+                    continue;
                 }
             }
+            let removed_current = self.forget(seq) == writing && writing.is_some();
             self.metrics.record_file_removed();
             self.gauge();
-            if entry.open_by.is_some() && entry.open_by == writing {
-                return true;
+            if removed_current {
+                return Room::RemovedCurrent;
             }
         }
-        false
+        Room::Made
+    }
+
+    /// Drops file `seq` (gone from disk) from the books: its bytes, and the handle of the
+    /// scene writing it (those lines count as recorded, then removed). Returns that scene.
+    fn forget(&mut self, seq: u64) -> Option<usize> {
+        let entry = self.files.remove(&seq)?;
+        self.total = self.total.saturating_sub(entry.bytes);
+        let s = entry.open_by?;
+        if let Some(f) = self.scenes[s].open.take() {
+            self.metrics
+                .record_written(&self.scenes[s].name, f.buffered_lines, 0);
+        }
+        Some(s)
+    }
+
+    /// Brings the books in line with the disk, at most once per [`RECONCILE_EVERY`]: files
+    /// removed from outside leave the accounting (a scene writing one starts a new file, its
+    /// directory re-created if that went too).
+    fn reconcile(&mut self) {
+        if self.last_reconcile.elapsed() < RECONCILE_EVERY {
+            return;
+        }
+        self.last_reconcile = Instant::now();
+        let gone: Vec<u64> = self
+            .files
+            .iter()
+            .filter(|(_, e)| matches!(e.path.try_exists(), Ok(false)))
+            .map(|(seq, _)| *seq)
+            .collect();
+        for seq in gone {
+            if let Some(s) = self.forget(seq) {
+                tracing::warn!(scene = %self.scenes[s].name, "the current recording file was removed from outside; starting a new one");
+            }
+        }
+        self.gauge();
     }
 
     /// Starts scene `s`'s next file with its header.
@@ -561,10 +407,16 @@ impl Writer {
         );
         let st = &mut self.scenes[s];
         let path = st.dir.join(name);
-        let mut file = OpenOptions::new()
-            .write(true)
-            .create_new(true)
-            .open(&path)?;
+        let create = || OpenOptions::new().write(true).create_new(true).open(&path);
+        let mut file = match create() {
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                // The scene's directory was removed from outside: make it again.
+                tracing::warn!(dir = %st.dir.display(), "the recording directory was removed; re-creating it");
+                std::fs::create_dir_all(&st.dir)?;
+                create()?
+            }
+            r => r?,
+        };
         // The header goes out at once: a file on disk always starts with a whole header.
         if let Err(e) = file.write_all(&st.header) {
             drop(file);
@@ -587,6 +439,7 @@ impl Writer {
                 path,
                 bytes,
                 open_by: Some(s),
+                remove_failed: false,
             },
         );
         self.total += bytes;
@@ -622,6 +475,7 @@ impl Writer {
         for s in 0..self.scenes.len() {
             self.flush(s);
         }
+        self.reconcile();
         self.gauge();
     }
 

@@ -1,0 +1,239 @@
+//! Recording of every accepted batch (`crossview serve --record DIR`), in the SPEC §7 format,
+//! to rotating files, without ever holding up association.
+//!
+//! **Layout.** One directory per scene, `DIR/<scene>/`, holding files named
+//! `<seq>-<UTC time>.jsonl` (`seq` ten digits, one counter over the whole of `DIR`, so names
+//! sort in the order the files were started). Each file begins with its scene header line and
+//! is a valid recording on its own; a scene's files together (read in name order, e.g.
+//! `crossview eval --data DIR/<scene>`) are the scene's accepted batches in acceptance order.
+//!
+//! **Rotation and retention.** A scene's file is closed (flushed and `fsync`ed) and the next
+//! one started when the next line would take it past `max_file_bytes`, or when a batch arrives
+//! once the file is `max_file_age` old. The recording files under `DIR` (every scene, also
+//! scenes not served now) never take more than `max_bytes` together: before a line is written,
+//! the oldest files (lowest `seq`) are removed until it fits — the oldest file may be a scene's
+//! current one, which then starts afresh.
+//!
+//! **Never in the way.** [`SceneRecorder::record`] only hands the batch (already validated and
+//! accepted) to a bounded in-memory queue (`queue_bytes`, an estimate of the batches' memory)
+//! read by one dedicated writer thread; it never blocks and never does I/O. A batch that does
+//! not fit is not recorded and counted (`crossview_record_dropped_total{reason="queue_full"}`).
+//! The writer serializes the lines, buffers them (up to 64 KiB per file) and writes whole lines
+//! with one `write` call, whenever the buffer fills or the queue runs dry (so what was accepted
+//! reaches the kernel within moments even at a trickle). A write error is logged (rate-limited)
+//! and counted (`crossview_record_write_errors_total`; the lost batches in
+//! `crossview_record_dropped_total{reason="write_error"}`); the file is cut back to its last
+//! complete write and the next batch starts a new file. It never stops the server.
+//!
+//! **Crash safety.** A line is only ever written after the lines before it, so after a crash
+//! (SIGKILL, power loss) only the *last* line of a file can be incomplete. At start-up the
+//! recorder repairs every recording file under `DIR`: a tail after the last newline is cut
+//! off (a file with no complete line, or an empty one, is removed), and it always starts new
+//! files, never appending to old ones. Readers (`crossview_data`) also drop a torn last line of
+//! each file with a count, so a recording can be read before a restart too. Graceful shutdown
+//! drains the queue, writes and `fsync`s every file.
+mod writer;
+
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::mpsc::Sender;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use crossview_core::{Detection, Error, Result, SceneSpec};
+
+use crate::metrics::Metrics;
+use writer::Writer;
+
+/// A file's buffer is written out once it holds this much.
+const WRITE_CHUNK: usize = 64 << 10;
+
+/// Where and how `crossview serve --record` writes (see the module docs).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RecordConfig {
+    /// The recording directory; one sub-directory per scene.
+    pub dir: PathBuf,
+    /// A file is rotated before it would grow past this many bytes.
+    pub max_file_bytes: u64,
+    /// A file is rotated when a batch arrives once it is this old.
+    pub max_file_age: Duration,
+    /// All recording files under `dir` together stay within this many bytes (the oldest
+    /// files are removed first).
+    pub max_bytes: u64,
+    /// Memory (an estimate) of the batches waiting for the writer; beyond it batches are not
+    /// recorded (and counted).
+    pub queue_bytes: usize,
+}
+
+impl RecordConfig {
+    /// Defaults for recording into `dir`: 64 MiB files, rotated after 10 minutes, 1 GiB in
+    /// all, a 64 MiB queue.
+    pub fn new(dir: impl Into<PathBuf>) -> Self {
+        RecordConfig {
+            dir: dir.into(),
+            max_file_bytes: 64 << 20,
+            max_file_age: Duration::from_secs(600),
+            max_bytes: 1 << 30,
+            queue_bytes: 64 << 20,
+        }
+    }
+
+    fn validate(&self) -> Result<()> {
+        if self.max_file_bytes == 0 || self.max_bytes == 0 || self.queue_bytes == 0 {
+            return Err(Error::invalid(
+                "--record",
+                "--record-max-file-bytes, --record-max-bytes and --record-queue-bytes must be positive",
+            ));
+        }
+        if self.max_file_bytes > self.max_bytes {
+            return Err(Error::invalid(
+                "--record-max-file-bytes",
+                format!(
+                    "{} is more than --record-max-bytes {}",
+                    self.max_file_bytes, self.max_bytes
+                ),
+            ));
+        }
+        if self.max_file_age.is_zero() {
+            return Err(Error::invalid("--record-max-file-age", "must be positive"));
+        }
+        Ok(())
+    }
+}
+
+/// One accepted batch on its way to the writer.
+enum Msg {
+    Batch {
+        scene: usize,
+        camera: String,
+        frame_id: u64,
+        detections: Vec<Detection>,
+        cost: usize,
+    },
+    Stop,
+}
+
+/// The server's recorder: the queue to the writer thread (see the module docs).
+pub(crate) struct Recorder {
+    tx: Sender<Msg>,
+    queued: Arc<AtomicUsize>,
+    capacity: usize,
+    closed: AtomicBool,
+    metrics: Metrics,
+    names: Vec<String>,
+    writer: Mutex<Option<std::thread::JoinHandle<()>>>,
+}
+
+impl std::fmt::Debug for Recorder {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Recorder")
+            .field("scenes", &self.names)
+            .finish()
+    }
+}
+
+/// One scene's handle on the server's recorder (see the module docs).
+#[derive(Clone)]
+pub struct SceneRecorder {
+    recorder: Arc<Recorder>,
+    scene: usize,
+}
+
+impl Recorder {
+    /// Prepares `config.dir` (creates it and the scenes' directories, repairs torn tails,
+    /// applies the size bound) and starts the writer thread.
+    pub(crate) fn start(
+        config: RecordConfig,
+        scenes: &[SceneSpec],
+        metrics: Metrics,
+    ) -> Result<Arc<Recorder>> {
+        config.validate()?;
+        let writer = Writer::open(config.clone(), scenes, metrics.clone())?;
+        let (tx, rx) = std::sync::mpsc::channel();
+        let queued = Arc::new(AtomicUsize::new(0));
+        let q = queued.clone();
+        let handle = std::thread::Builder::new()
+            .name("recorder".into())
+            .spawn(move || writer.run(rx, q))
+            .map_err(|e| Error::internal_from("cannot start the recorder thread", e))?;
+        tracing::info!(dir = %config.dir.display(), max_file_bytes = config.max_file_bytes,
+            max_file_age = ?config.max_file_age, max_bytes = config.max_bytes, "recording accepted batches");
+        Ok(Arc::new(Recorder {
+            tx,
+            queued,
+            capacity: config.queue_bytes,
+            closed: AtomicBool::new(false),
+            metrics,
+            names: scenes.iter().map(|s| s.name.clone()).collect(),
+            writer: Mutex::new(Some(handle)),
+        }))
+    }
+
+    /// The handle for scene number `scene` (its index in the `scenes` given to
+    /// [`Recorder::start`]).
+    pub(crate) fn scene(self: &Arc<Self>, scene: usize) -> SceneRecorder {
+        SceneRecorder {
+            recorder: self.clone(),
+            scene,
+        }
+    }
+
+    /// Stops the writer once it has written everything queued (flushed and `fsync`ed).
+    /// Blocking; call after the scenes stopped accepting batches.
+    pub(crate) fn close(&self) {
+        if self.closed.swap(true, Ordering::AcqRel) {
+            return;
+        }
+        let _ = self.tx.send(Msg::Stop);
+        if let Some(h) = lock(&self.writer).take()
+            && h.join().is_err()
+        {
+            tracing::error!("recorder thread panicked");
+        }
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Memory a queued batch holds (an estimate, for the queue bound).
+fn batch_cost(camera: &str, detections: &[Detection]) -> usize {
+    let vectors: usize = detections
+        .iter()
+        .map(|d| d.appearance.as_ref().map_or(0, |a| a.len() * 4))
+        .sum();
+    128 + camera.len() + std::mem::size_of_val(detections) + vectors
+}
+
+impl SceneRecorder {
+    /// Queues one accepted batch for the writer; never blocks. Call it where the batch is
+    /// accepted, under the scene's intake lock, so batches are written in acceptance order.
+    /// A batch the queue has no room for is counted as dropped.
+    pub(crate) fn record(&self, camera: &str, frame_id: u64, detections: Vec<Detection>) {
+        let r = &*self.recorder;
+        let name = &r.names[self.scene];
+        let cost = batch_cost(camera, &detections);
+        let reserved = r
+            .queued
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |q| {
+                (q + cost <= r.capacity && !r.closed.load(Ordering::Acquire)).then_some(q + cost)
+            })
+            .is_ok();
+        if !reserved {
+            r.metrics.record_dropped(name, "queue_full", 1);
+            return;
+        }
+        let msg = Msg::Batch {
+            scene: self.scene,
+            camera: camera.to_string(),
+            frame_id,
+            detections,
+            cost,
+        };
+        if r.tx.send(msg).is_err() {
+            r.queued.fetch_sub(cost, Ordering::AcqRel);
+            r.metrics.record_dropped(name, "write_error", 1);
+        }
+    }
+}
