@@ -124,7 +124,7 @@ pub struct ServeArgs {
     #[arg(long, env = "CROSSVIEW_SUBSCRIBER_STALL_TIMEOUT", default_value = "30s", value_parser = parse_duration)]
     pub subscriber_stall_timeout: Duration,
     /// Memory (bytes) all result subscribers together may cost; each is charged a fixed
-    /// worst case (128 KiB). At the budget a new subscription displaces the subscriber
+    /// worst case (160 KiB). At the budget a new subscription displaces the subscriber
     /// furthest behind, or is refused (429 / RESOURCE_EXHAUSTED) when all keep up.
     #[arg(long, env = "CROSSVIEW_SUBSCRIBER_MEMORY", default_value_t = ConnectionLimits::default().subscriber_memory)]
     pub subscriber_memory: usize,

@@ -25,33 +25,10 @@ fn bytes_on_disk(dir: &Path) -> u64 {
     total
 }
 
-/// Pushes frames `frames` of all three cameras over HTTP, `n` boxes each.
-async fn push(server: &TestServer, frames: std::ops::RangeInclusive<u64>, n: usize) {
-    let http = reqwest::Client::new();
-    for f in frames {
-        for c in 0..3 {
-            let r = http
-                .post(server.url("/v1/scenes/lab/batches"))
-                .json(&batch_json(c, f, n))
-                .send()
-                .await
-                .unwrap();
-            assert_eq!(r.status(), 202);
-        }
-    }
-}
-
+/// Waits until `n` batches of `lab` reached the recording files.
 async fn wait_recorded(server: &TestServer, n: f64) {
-    guard("recorded batches", async {
-        loop {
-            let m = server.metrics().await;
-            if metric(&m, "crossview_record_batches_total{scene=\"lab\"}") >= n {
-                break;
-            }
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    })
-    .await;
+    let base = format!("http://{}", server.addr);
+    wait_for_metric(&base, "crossview_record_batches_total{scene=\"lab\"}", n).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -66,7 +43,7 @@ async fn an_old_file_that_cannot_be_removed_stays_counted_and_the_bound_holds_on
         });
     })
     .await;
-    push(&server, 1..=8, 2).await;
+    server.push_http(1..=8, 2).await;
     wait_recorded(&server, 24.0).await;
     // The oldest file becomes impossible to remove (even for root): a directory of that
     // name holding the same bytes.
@@ -81,7 +58,7 @@ async fn an_old_file_that_cannot_be_removed_stays_counted_and_the_bound_holds_on
     std::fs::create_dir(&oldest).unwrap();
     std::fs::write(oldest.join("kept"), &content).unwrap();
 
-    push(&server, 9..=60, 2).await;
+    server.push_http(9..=60, 2).await;
     wait_recorded(&server, 180.0).await;
     let m = server.metrics().await;
     assert!(
@@ -105,12 +82,12 @@ async fn a_scene_directory_removed_while_running_is_made_again() {
     let rec_dir = tempfile::tempdir().unwrap();
     let dir = rec_dir.path().to_path_buf();
     let server = start(|c| c.record = Some(RecordConfig::new(&dir))).await;
-    push(&server, 1..=10, 2).await;
+    server.push_http(1..=10, 2).await;
     wait_recorded(&server, 30.0).await;
     std::fs::remove_dir_all(dir.join("lab")).unwrap();
     // Longer than the writer's reconciliation period, so the next batch sees the loss.
     tokio::time::sleep(Duration::from_millis(1200)).await;
-    push(&server, 11..=40, 2).await;
+    server.push_http(11..=40, 2).await;
     wait_recorded(&server, 120.0).await;
     let m = server.metrics().await;
     assert_eq!(

@@ -12,21 +12,8 @@ use futures::StreamExt;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
-/// What one subscriber is charged (the server's `SUBSCRIBER_CHARGE`, 128 KiB).
-const CHARGE: usize = 128 << 10;
-
-/// Pushes frame `frame` of the 3-camera scene `lab` (all cameras) over HTTP.
-async fn push_frame(http: &reqwest::Client, server: &TestServer, frame: u64, boxes: usize) {
-    for c in 0..3 {
-        let r = http
-            .post(server.url("/v1/scenes/lab/batches"))
-            .json(&batch_json(c, frame, boxes))
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(r.status(), 202, "push of frame {frame}");
-    }
-}
+/// What one subscriber is charged (the server's `SUBSCRIBER_CHARGE`, 160 KiB).
+const CHARGE: usize = 160 << 10;
 
 /// `GET /healthz` on a new connection, as a load balancer's probe makes it: the status, or 0
 /// when the connection was refused.
@@ -107,7 +94,7 @@ async fn idle_subscribers_never_lock_out_health_metrics_and_pushes() {
     );
     assert!(refused >= 96, "{refused} refused");
     // A push still lands, and its frame reaches the subscribers that hold a slot.
-    push_frame(&http, &server, 1, 2).await;
+    server.push_http(1..=1, 2).await;
     let text = server.metrics().await;
     assert!(metric(&text, "crossview_batches_total{scene=\"lab\"}") >= 3.0);
     drop(held);
@@ -136,9 +123,7 @@ async fn at_the_memory_budget_the_subscriber_furthest_behind_makes_room() {
         "beyond the budget, with nobody behind, newcomers are refused: {:?}",
         stuck.statuses
     );
-    for f in 1..=3 {
-        push_frame(&http, &server, f, 3).await;
-    }
+    server.push_http(1..=3, 3).await;
     // A reader arrives: once the frames are published, the stuck client's subscriptions are
     // the furthest behind and go (before that nobody is behind and it is refused).
     let reader = guard("a reader is admitted", async {
@@ -172,7 +157,7 @@ async fn at_the_memory_budget_the_subscriber_furthest_behind_makes_room() {
     .await;
     // The reader gets the next frame.
     let mut events = reader.bytes_stream();
-    push_frame(&http, &server, 4, 1).await;
+    server.push_http(4..=4, 1).await;
     let got = guard("an event reaches the new reader", async {
         let mut text = String::new();
         while let Some(Ok(chunk)) = events.next().await {

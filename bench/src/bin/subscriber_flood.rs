@@ -147,6 +147,7 @@ async fn main() -> anyhow::Result<()> {
         let (frames, boxes) = (args.frames, args.boxes);
         tokio::spawn(async move {
             let (mut ok, mut failed) = (0u64, 0u64);
+            let mut why = std::collections::BTreeMap::<String, u64>::new();
             let mut tick = tokio::time::interval(Duration::from_millis(100));
             for f in 1..=frames {
                 tick.tick().await;
@@ -167,11 +168,25 @@ async fn main() -> anyhow::Result<()> {
                         .await
                     {
                         Ok(r) if r.status() == 202 => ok += 1,
-                        _ => failed += 1,
+                        Ok(r) => {
+                            failed += 1;
+                            *why.entry(r.status().to_string()).or_default() += 1;
+                        }
+                        Err(e) => {
+                            failed += 1;
+                            let kind = if e.is_connect() {
+                                "connect"
+                            } else if e.is_timeout() {
+                                "timeout"
+                            } else {
+                                "connection closed"
+                            };
+                            *why.entry(kind.to_string()).or_default() += 1;
+                        }
                     }
                 }
             }
-            (ok, failed)
+            (ok, failed, why)
         })
     };
 
@@ -192,8 +207,8 @@ async fn main() -> anyhow::Result<()> {
         args.sse_attempts,
         t.elapsed().as_secs_f64()
     );
-    let (ok, failed) = pusher.await?;
-    println!("pushes: {ok} accepted, {failed} failed");
+    let (ok, failed, why) = pusher.await?;
+    println!("pushes: {ok} accepted, {failed} failed {why:?}");
     stop.store(true, Ordering::Release);
     let probes = prober.await?;
     let mut lat: Vec<Duration> = probes.iter().flatten().copied().collect();

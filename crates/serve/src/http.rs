@@ -391,12 +391,8 @@ async fn events(
                 let frame = Event::default()
                     .event("frame")
                     .id(r.result.frame_id.to_string());
-                let data = if query.boxes {
-                    frame.json_data(&*r)
-                } else {
-                    frame.json_data(&r.result)
-                };
-                data.unwrap_or_else(|e| Event::default().event("error").data(e.to_string()))
+                // Encoded once per frame, whatever the number of subscribers.
+                frame.data(r.json(query.boxes))
             }
             Err(e) => Event::default().event("error").data(e.to_string()),
         })

@@ -15,11 +15,9 @@ use super::config::ConnectionLimits;
 use super::conn::ConnHandle;
 use super::metrics::Metrics;
 use super::reload::{ReloadOutcome, Reloader};
-use super::scene::Scene;
+use super::scene::{Published, Scene};
 use super::subscribers::Subscribers;
-use crossview_api::types::{
-    AssociateRequest, BatchAck, FrameResult, FrameWithBoxes, SceneDescription,
-};
+use crossview_api::types::{AssociateRequest, BatchAck, FrameResult, SceneDescription};
 use crossview_core::Batch;
 use crossview_core::{Error, Result};
 
@@ -27,7 +25,7 @@ use crossview_core::{Error, Result};
 /// subscribers get unless they asked for the boxes), in frame-id order. It ends after
 /// shutdown has published the last flushed frame, or with `ResourceExhausted` when the
 /// subscriber fell more than the subscriber buffer behind.
-pub(crate) type ResultStream = Pin<Box<dyn Stream<Item = Result<Arc<FrameWithBoxes>>> + Send>>;
+pub(crate) type ResultStream = Pin<Box<dyn Stream<Item = Result<Arc<Published>>> + Send>>;
 
 /// The service shared by all connections of a server.
 #[derive(Debug)]
@@ -166,7 +164,12 @@ impl Service {
     ) -> Result<ResultStream> {
         let s = self.scene(scene)?;
         let taken = Arc::new(AtomicU64::new(0));
-        let ticket = self.track(self.subscribers.admit(s, conn.as_ref(), &taken))?;
+        // Network subscribers live within the budget; in-process ones (Kafka mode's
+        // forwarders) hold no transport buffer and are never refused by it.
+        let ticket = match &conn {
+            Some(c) => Some(self.track(self.subscribers.admit(s, Some(c), &taken))?),
+            None => None,
+        };
         let (rx, guard) = self.track(s.subscribe())?;
         let metrics = self.metrics.clone();
         let mut failed = false;

@@ -35,9 +35,11 @@ use crossview_core::{Error, Result};
 pub(crate) const TRANSPORT_BUFFER: usize = 64 << 10;
 
 /// What one subscriber is charged against `subscriber_memory`: its transport buffer, one
-/// encoded result beyond it, and the stream's own state (measured: BENCHMARKS.md,
-/// "Subscriber budget").
-pub(crate) const SUBSCRIBER_CHARGE: usize = TRANSPORT_BUFFER + (64 << 10);
+/// encoded result beyond it, the stream's own state and the allocator's slack. Measured: a
+/// never-read HTTP/2 stream whose buffer is full costs the server about 133 KiB with
+/// results of ~6 KiB (BENCHMARKS.md, "Subscriber budget"); results much larger than 64 KiB
+/// cost a stream more.
+pub(crate) const SUBSCRIBER_CHARGE: usize = TRANSPORT_BUFFER + (96 << 10);
 
 /// One live subscriber.
 #[derive(Debug)]

@@ -149,6 +149,23 @@ async fn serve_in(
 }
 
 impl TestServer {
+    /// Pushes frames `frames` of all three cameras of `lab` over HTTP JSON, `n` boxes per
+    /// camera; asserts each batch is accepted (202).
+    pub async fn push_http(&self, frames: std::ops::RangeInclusive<u64>, n: usize) {
+        let http = reqwest::Client::new();
+        for f in frames {
+            for c in 0..3 {
+                let r = http
+                    .post(self.url("/v1/scenes/lab/batches"))
+                    .json(&batch_json(c, f, n))
+                    .send()
+                    .await
+                    .expect("push");
+                assert_eq!(r.status(), 202, "push of camera {c}, frame {f}");
+            }
+        }
+    }
+
     /// `http://addr{path}`.
     pub fn url(&self, path: &str) -> String {
         format!("http://{}{}", self.addr, path)

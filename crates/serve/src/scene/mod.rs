@@ -24,7 +24,7 @@ use std::time::{Duration, Instant};
 
 use tokio::sync::{Notify, broadcast, oneshot};
 
-use crossview_api::types::{FrameResult, FrameWithBoxes, SceneDescription};
+use crossview_api::types::{FrameResult, SceneDescription};
 use crossview_core::association::AssociationConfig;
 use crossview_core::tracking::{Tracker, TrackerConfig};
 use crossview_core::{Detection, Encoder, Error, Frame, Result, SceneSpec};
@@ -35,8 +35,11 @@ use crate::record::SceneRecorder;
 use crate::sync::{Rejection, Synchronizer};
 
 mod admission;
+mod published;
 mod validate;
 mod worker;
+
+pub use published::Published;
 
 pub(crate) use worker::Model;
 use worker::{Job, Worker};
@@ -75,7 +78,7 @@ pub struct Scene {
     close_by: Arc<Mutex<Option<Instant>>>,
     closed: AtomicBool,
     subscribers: Arc<AtomicUsize>,
-    results: Mutex<Option<broadcast::Sender<Arc<FrameWithBoxes>>>>,
+    results: Mutex<Option<broadcast::Sender<Arc<Published>>>>,
     /// Results published so far (for spotting subscribers that stopped reading).
     published: Arc<AtomicU64>,
     /// Wakes the timer task when a new frame starts waiting.
@@ -407,7 +410,7 @@ impl Scene {
     /// A receiver of this scene's frame results (each with the frame's boxes) from now on, or
     /// `Unavailable` after shutdown; the guard keeps the subscriber counted
     /// (`crossview_subscribers`) until dropped.
-    pub fn subscribe(&self) -> Result<(broadcast::Receiver<Arc<FrameWithBoxes>>, SubscriberGuard)> {
+    pub fn subscribe(&self) -> Result<(broadcast::Receiver<Arc<Published>>, SubscriberGuard)> {
         let rx = lock(&self.results)
             .as_ref()
             .map(broadcast::Sender::subscribe)

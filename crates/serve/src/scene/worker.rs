@@ -55,7 +55,7 @@ pub(super) struct Worker {
     /// What the scene describes as its model: the worker's, updated when a swap is applied.
     pub(super) serving: Arc<Mutex<Option<SceneInfo>>>,
     /// Published results, each with the frame's boxes (for `events?boxes=true`).
-    pub(super) results: broadcast::Sender<Arc<FrameWithBoxes>>,
+    pub(super) results: broadcast::Sender<Arc<super::Published>>,
     pub(super) queued: Arc<AtomicUsize>,
     pub(super) metrics: Metrics,
     pub(super) frame_deadline: Duration,
@@ -82,7 +82,10 @@ impl Worker {
                     // No subscriber is not an error.
                     let _ = self
                         .results
-                        .send(Arc::new(FrameWithBoxes { result: r, views }));
+                        .send(Arc::new(super::Published::new(FrameWithBoxes {
+                            result: r,
+                            views,
+                        })));
                 }
                 Job::Unary {
                     frame,
