@@ -79,6 +79,8 @@ async fn one_replica_publishes_every_batch_skips_malformed_and_resumes_after_res
         .set("bootstrap.servers", &broker.addr)
         .set("group.id", "checker-dead")
         .set("auto.offset.reset", "earliest")
+        // tansu holds a group's first rebalance for half the session timeout.
+        .set("session.timeout.ms", "6000")
         .create()
         .unwrap();
     dead.subscribe(&["dead"]).unwrap();

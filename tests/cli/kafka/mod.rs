@@ -123,6 +123,8 @@ impl Results {
             .set("bootstrap.servers", &broker.addr)
             .set("group.id", format!("checker-{topic}"))
             .set("auto.offset.reset", "earliest")
+            // tansu holds a group's first rebalance for half the session timeout.
+            .set("session.timeout.ms", "6000")
             .set("enable.auto.commit", "false")
             .create()
             .unwrap();
