@@ -31,7 +31,7 @@ import sys
 import time
 import urllib.request
 
-from confluent_kafka import Consumer, Producer
+from confluent_kafka import OFFSET_BEGINNING, Consumer, Producer, TopicPartition
 
 SCENES = 8
 FPS = 10
@@ -90,7 +90,7 @@ class Replica:
             "--kafka-brokers", broker, "--kafka-input-topic", "batches",
             "--kafka-output-topic", "results", "--kafka-dead-letter-topic", "dead",
             "--kafka-group", "replicas", "--kafka-producer-id", name,
-        ]
+        ] + args.replica_args.split()
         self.started = time.time()
         self.proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
 
@@ -103,19 +103,27 @@ class Replica:
         raise SystemExit(f"replica {self.name} not ready after {timeout} s")
 
 
-def read_all(broker, topic, until_idle=3.0):
-    c = Consumer({
-        "bootstrap.servers": broker, "group.id": f"check-{topic}-{time.time()}",
-        "auto.offset.reset": "earliest", "enable.auto.commit": False,
-    })
-    c.subscribe([topic])
-    out, last = [], time.time()
-    while time.time() - last < until_idle:
-        m = c.poll(0.2)
-        if m is None or m.error():
-            continue
-        last = time.time()
-        out.append(m)
+def read_all(broker, topic):
+    """Every record of `topic`, from the beginning to its current end (no consumer group)."""
+    c = Consumer({"bootstrap.servers": broker, "group.id": "unused", "enable.auto.commit": False})
+    parts = c.list_topics(topic, timeout=10).topics[topic].partitions
+    ends, tps = {}, []
+    for p in parts:
+        lo, hi = c.get_watermark_offsets(TopicPartition(topic, p), timeout=10)
+        if hi > lo:
+            ends[p] = hi
+            tps.append(TopicPartition(topic, p, OFFSET_BEGINNING))
+    out = []
+    if tps:
+        c.assign(tps)
+        t = time.time()
+        while ends and time.time() - t < 60:
+            m = c.poll(0.5)
+            if m is None or m.error():
+                continue
+            out.append(m)
+            if m.offset() + 1 >= ends.get(m.partition(), 0):
+                ends.pop(m.partition(), None)
     c.close()
     return out
 
@@ -129,6 +137,7 @@ def main():
     ap.add_argument("--kill-at", type=float, default=10)
     ap.add_argument("--restart-at", type=float, default=25)
     ap.add_argument("--run", default="1")
+    ap.add_argument("--replica-args", default="", help="extra `crossview serve` flags")
     a = ap.parse_args()
     os.makedirs(a.out, exist_ok=True)
     rec = os.path.join(a.out, "rec.jsonl")
@@ -224,7 +233,7 @@ def main():
         # Drain: wait until no new results for 5 s (bounded by 60 s).
         time.sleep(5)
         res = read_all(broker, "results")
-        dead = read_all(broker, "dead", 1.0)
+        dead = read_all(broker, "dead")
     finally:
         for pr in procs:
             if pr.poll() is None:
@@ -272,6 +281,18 @@ def main():
             worst = max([worst] + [b - a_ for a_, b in zip(ts, ts[1:])])
         return worst
 
+    reasons = {}
+    for m in dead:
+        why = dict(m.headers() or []).get("crossview-error", b"").decode()
+        when = m.timestamp()[1] / 1000.0
+        phase = "before-kill" if when < killed_at else ("kill-restart" if when < restarted_at else "after-restart")
+        k = f"{phase}: {why.split(':')[0][:40]}"
+        reasons[k] = reasons.get(k, 0) + 1
+    partial_when = {}
+    for r in results:
+        if r["missing"]:
+            phase = "before-kill" if r["ts"] < killed_at else ("kill-restart" if r["ts"] < restarted_at else "after-restart")
+            partial_when[phase] = partial_when.get(phase, 0) + 1
     report = {
         "run": a.run, "frames_sent": len(frames_sent), "batches_sent": len(acked),
         "batches_not_acked": failed[0], "results": len(results), "partial_results": partial,
@@ -283,6 +304,7 @@ def main():
         "duplicates_all_with_producer_epoch": dup_tagged, "duplicate_copies_distinct": dup_distinct,
         "first_readyz_s": [round(ready_a, 2), round(ready_b, 2)], "all_assigned_s": round(settle, 2),
         "scenes_a_b": [len(a_scenes), len(b_scenes)],
+        "dead_letter_reasons": reasons, "partial_results_by_phase": partial_when,
     }
     with open(os.path.join(a.out, f"run{a.run}.json"), "w") as f:
         json.dump(report, f, indent=1)

@@ -9,7 +9,7 @@
 # Usage: bash bench/kafka_takeover.sh
 # Env:   CROSSVIEW_BIN (target/release/crossview)  TANSU (.cache/tansu/tansu)
 #        OUT (/var/tmp/crossview-kafka-takeover)  RUNS (5)  SECONDS_ (45)  KILL_AT (10)
-#        RESTART_AT (25)
+#        RESTART_AT (25)  REPLICA_ARGS (extra `crossview serve` flags, e.g. "--sync-timeout 1s")
 # Needs python3; installs confluent-kafka==2.16.1 (PyPI) into .cache/kafka-venv.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -27,5 +27,5 @@ fi
 for run in $(seq "$RUNS"); do
   "$VENV/bin/python" bench/kafka_takeover.py --crossview "$CROSSVIEW_BIN" --tansu "$TANSU" \
     --out "$OUT" --run "$run" --seconds "${SECONDS_:-45}" --kill-at "${KILL_AT:-10}" \
-    --restart-at "${RESTART_AT:-25}"
+    --restart-at "${RESTART_AT:-25}" --replica-args "${REPLICA_ARGS:-}"
 done

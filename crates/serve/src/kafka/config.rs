@@ -92,7 +92,7 @@ impl KafkaConfig {
     }
 
     /// The consumer's configuration: manual commits, no auto offset store, the rebalance
-    /// defaults of [`REBALANCE_DEFAULTS`], then the user's properties (which win).
+    /// defaults of [`CONSUMER_DEFAULTS`], then the user's properties (which win).
     pub(super) fn consumer_config(&self) -> ClientConfig {
         let mut c = self.client();
         c.set("group.id", &self.group)
@@ -101,7 +101,7 @@ impl KafkaConfig {
             .set("auto.offset.reset", "earliest")
             .set("enable.partition.eof", "false")
             .set("statistics.interval.ms", "2000");
-        for (k, v) in REBALANCE_DEFAULTS {
+        for (k, v) in CONSUMER_DEFAULTS {
             c.set(*k, *v);
         }
         self.with_properties(c, true)
@@ -131,15 +131,20 @@ impl KafkaConfig {
     }
 }
 
-/// Group settings for a takeover in seconds (docs/kafka.md, "Rebalances"): incremental
+/// Consumer defaults (docs/kafka.md, "Rebalances"): for a takeover in seconds, incremental
 /// rebalancing (only the partitions that move stop), a dead replica noticed after 6 s (the
 /// smallest session Apache Kafka brokers accept by default), heartbeats every 500 ms. Static
 /// membership (`group.instance.id`) is left to `--kafka-property`: the pinned test broker
 /// never hands a dead static member's partitions over.
-pub const REBALANCE_DEFAULTS: &[(&str, &str)] = &[
+pub const CONSUMER_DEFAULTS: &[(&str, &str)] = &[
     ("partition.assignment.strategy", "cooperative-sticky"),
     ("session.timeout.ms", "6000"),
     ("heartbeat.interval.ms", "500"),
+    // A fetch returns after at most 10 ms without new records (librdkafka's default is
+    // 500 ms). Brokers that hold every fetch for the full wait (tansu 0.6.0) otherwise deliver
+    // a frame's cameras in bursts 500 ms apart, beyond the 200 ms sync timeout: the frame is
+    // published partial and its last cameras are refused as late.
+    ("fetch.wait.max.ms", "10"),
 ];
 
 /// Prefixes of librdkafka properties only a consumer knows.

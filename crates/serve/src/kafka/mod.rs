@@ -42,7 +42,7 @@ mod context;
 mod offsets;
 
 use codec::{content_type, decode, encode_result};
-pub use config::{KafkaConfig, REBALANCE_DEFAULTS, ValueFormat};
+pub use config::{CONSUMER_DEFAULTS, KafkaConfig, ValueFormat};
 use context::{Context, commit_list};
 use offsets::{Ownership, Publish};
 
@@ -149,6 +149,9 @@ struct Record<'a> {
     /// Read here before (below the highest offset consumed before the last revocation).
     redelivered: bool,
 }
+
+/// Most results of one scene handed to the producer and not yet acknowledged.
+const MAX_UNACKED: usize = 64;
 
 /// What became of one input record.
 enum Handled {
@@ -316,42 +319,62 @@ impl Kafka {
     }
 
     /// Produces every result of `scene` and closes its batches' offsets once acknowledged.
+    /// Up to [`MAX_UNACKED`] results are in flight to the broker at once (a catch-up is not
+    /// paced by one acknowledgement round trip per frame); acknowledgements are taken in order.
     async fn forward(self: Arc<Self>, scene: String, mut results: crate::service::ResultStream) {
+        let mut acks = futures::stream::FuturesOrdered::new();
+        let mut open = true;
         loop {
-            while let Some(item) = results.next().await {
-                let r = match item {
-                    Ok(r) => r,
-                    Err(e) => {
+            tokio::select! {
+                item = results.next(), if open && acks.len() < MAX_UNACKED => match item {
+                    Some(Ok(r)) => {
+                        let Some((held, epoch)) = self.to_publish(&scene, r.result.frame_id) else {
+                            continue;
+                        };
+                        let (this, scene) = (&self, &scene);
+                        acks.push_back(async move {
+                            let ok = this.produce(scene, &r.result, epoch).await;
+                            (r.result.frame_id, held, ok)
+                        });
+                    }
+                    Some(Err(e)) => {
                         tracing::warn!(%scene, error = %e, "kafka: result stream lagged");
-                        break;
+                        match self.service.subscribe(&scene, None, None) {
+                            Ok(s) => results = s,
+                            Err(_) => open = false,
+                        }
                     }
-                };
-                let frame = r.result.frame_id;
-                let (publish, epoch) = {
-                    let mut o = lock(&self.offsets);
-                    (o.take_frame(&scene, frame), o.epoch)
-                };
-                let held = match publish {
-                    Publish::Stale => {
-                        // Its partition moved since: the owner publishes it.
-                        self.metrics().kafka_revoked_frames(1);
-                        tracing::debug!(%scene, frame, "kafka: result of a revoked partition dropped");
-                        continue;
+                    None if self.service.accepting() => {
+                        match self.service.subscribe(&scene, None, None) {
+                            Ok(s) => results = s,
+                            Err(_) => open = false,
+                        }
                     }
-                    Publish::Owned(h) => Some(h),
-                    Publish::Unheld => None,
-                };
-                if self.produce(&scene, &r.result, epoch).await {
-                    lock(&self.offsets).produced(&scene, frame, held);
+                    None => open = false,
+                },
+                Some((frame, held, ok)) = acks.next(), if !acks.is_empty() => {
+                    if ok {
+                        lock(&self.offsets).produced(&scene, frame, held);
+                    }
                 }
+                else => return,
             }
-            if !self.service.accepting() {
-                return;
+        }
+    }
+
+    /// Whether the result of `frame` of `scene` is produced here (with the records it closes
+    /// and the epoch), or dropped: its partition moved since its batches were read.
+    fn to_publish(&self, scene: &str, frame: u64) -> Option<(Option<offsets::Held>, u64)> {
+        let mut o = lock(&self.offsets);
+        match o.take_frame(scene, frame) {
+            Publish::Stale => {
+                drop(o);
+                self.metrics().kafka_revoked_frames(1);
+                tracing::debug!(%scene, frame, "kafka: result of a revoked partition dropped");
+                None
             }
-            match self.service.subscribe(&scene, None, None) {
-                Ok(s) => results = s,
-                Err(_) => return,
-            }
+            Publish::Owned(h) => Some((Some(h), o.epoch)),
+            Publish::Unheld => Some((None, o.epoch)),
         }
     }
 
