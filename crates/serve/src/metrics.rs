@@ -19,6 +19,8 @@ static META: Metadata<'static> =
 pub struct Metrics {
     recorder: Arc<PrometheusRecorder>,
     handle: PrometheusHandle,
+    /// Series (rendered name and labels) no longer exported: the lag of revoked partitions.
+    hidden: Arc<std::sync::Mutex<std::collections::BTreeSet<String>>>,
 }
 
 impl std::fmt::Debug for Metrics {
@@ -31,6 +33,11 @@ impl Default for Metrics {
     fn default() -> Self {
         Self::new()
     }
+}
+
+/// The rendered series of one partition's consumer lag, up to the value.
+fn lag_series(topic: &str, partition: i32) -> String {
+    format!("crossview_kafka_consumer_lag{{topic=\"{topic}\",partition=\"{partition}\"}} ")
 }
 
 fn key(name: &'static str, labels: &[(&'static str, &str)]) -> Key {
@@ -52,6 +59,7 @@ impl Metrics {
         Metrics {
             recorder: Arc::new(recorder),
             handle,
+            hidden: Arc::default(),
         }
     }
 
@@ -212,6 +220,10 @@ impl Metrics {
     /// Consumer lag of an owned input partition (librdkafka's statistics: high watermark
     /// minus the consumer's position).
     pub(crate) fn kafka_lag(&self, topic: &str, partition: i32, lag: i64) {
+        self.hidden
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(&lag_series(topic, partition));
         let p = partition.to_string();
         self.recorder
             .register_gauge(
@@ -232,6 +244,29 @@ impl Metrics {
                 &META,
             )
             .increment(n);
+    }
+
+    /// The lag gauge of an input partition this replica no longer owns: no longer exported.
+    pub(crate) fn kafka_lag_forget(&self, topic: &str, partition: i32) {
+        let line = lag_series(topic, partition);
+        self.hidden
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(line);
+    }
+
+    /// One input record read again after a rebalance whose frame was already produced
+    /// (dropped: not a loss).
+    pub(crate) fn kafka_redelivered(&self) {
+        self.inc("crossview_kafka_redelivered_total", &[]);
+    }
+
+    /// Frames with consumed batches dropped because their input partition left this replica
+    /// (the next owner publishes them).
+    pub(crate) fn kafka_revoked_frames(&self, n: usize) {
+        self.recorder
+            .register_counter(&key("crossview_kafka_revoked_frames_total", &[]), &META)
+            .increment(n as u64);
     }
 
     /// Live result subscribers (gRPC Subscribe/Stream and SSE) of a scene.
@@ -298,6 +333,18 @@ impl Metrics {
     /// The Prometheus text exposition.
     pub fn render(&self) -> String {
         self.handle.run_upkeep();
-        self.handle.render()
+        let text = self.handle.render();
+        let hidden = self.hidden.lock().unwrap_or_else(|e| e.into_inner());
+        if hidden.is_empty() {
+            return text;
+        }
+        let mut out = String::with_capacity(text.len());
+        for line in text.lines() {
+            if !hidden.iter().any(|h| line.starts_with(h.as_str())) {
+                out.push_str(line);
+                out.push('\n');
+            }
+        }
+        out
     }
 }

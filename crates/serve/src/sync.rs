@@ -280,6 +280,18 @@ impl Synchronizer {
         out
     }
 
+    /// Drops every pending frame (never emitted) and starts over as if `last_emitted` were the
+    /// last frame emitted (`None`: nothing yet); returns how many frames were dropped. For a
+    /// scene whose input moved to another consumer (Kafka mode's revocation), or came back.
+    pub(crate) fn restart(&mut self, last_emitted: Option<u64>) -> usize {
+        let n = self.pending.len();
+        self.pending.clear();
+        self.last_emitted = last_emitted;
+        self.strays.iter_mut().for_each(|s| *s = None);
+        self.stray_batches = 0;
+        n
+    }
+
     fn pop_first(&mut self, reason: EmitReason) -> Emitted {
         let (id, p) = self.pending.pop_first().expect("caller checked non-empty");
         self.last_emitted = Some(id);
@@ -448,6 +460,23 @@ mod tests {
         assert_eq!(s.push(0, 0, det(), t0), Err(Rejection::OutOfRange));
         assert_eq!(ids(&s.push(0, 1, det(), t0).unwrap()), vec![1]);
         assert_eq!(s.last_emitted(), Some(1));
+    }
+
+    #[test]
+    fn restart_drops_pending_frames_and_resumes_past_the_given_frame() {
+        let mut s = Synchronizer::new(2, Duration::from_secs(1), 8);
+        let t = Instant::now();
+        s.push(0, 1, det(), t).unwrap();
+        s.push(1, 1, det(), t).unwrap();
+        s.push(0, 2, det(), t).unwrap();
+        assert_eq!(s.restart(Some(1)), 1, "frame 2 dropped");
+        assert_eq!(s.pending_frames(), 0);
+        assert_eq!(s.push(1, 1, det(), t), Err(Rejection::Late));
+        let out = s.push(0, 2, det(), t).unwrap();
+        assert!(out.is_empty(), "frame 2 forms afresh");
+        assert_eq!(ids(&s.push(1, 2, det(), t).unwrap()), vec![2]);
+        assert_eq!(s.restart(None), 0);
+        assert!(s.push(0, 1, det(), t).is_ok(), "nothing emitted any more");
     }
 
     #[test]

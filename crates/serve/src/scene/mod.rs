@@ -335,6 +335,16 @@ impl Scene {
         intake.sync.next_deadline()
     }
 
+    /// Drops the frames pending in the synchronizer (never published) and resumes as if
+    /// `last_emitted` were the last frame emitted; returns how many frames were dropped. Kafka
+    /// mode calls it when the scene's input partition leaves this replica or comes to it.
+    pub fn restart(&self, last_emitted: Option<u64>) -> usize {
+        let mut intake = lock(&self.intake);
+        let n = intake.sync.restart(last_emitted);
+        self.metrics.pending(self.name(), 0);
+        n
+    }
+
     /// Associates one already synchronized frame (unary call); bypasses the synchronizer.
     pub async fn associate(
         &self,

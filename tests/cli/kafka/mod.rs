@@ -2,13 +2,12 @@
 //! loopback port; `make setup` fetches it): replicas of the real binary consume simulated
 //! recordings' batch lines keyed by scene and produce frame results keyed by scene.
 //!
-//! Asserted: every accepted batch appears in a published result (its camera reported in a
-//! result of its scene and frame); a malformed record is counted and skipped without stalling
-//! its partition; a replica restarted in the same group resumes from the committed offsets
-//! (nothing already published is published again after a graceful stop); with two replicas
-//! sharing 8 scenes, one killed with SIGKILL mid-stream, the other takes its scenes over and
-//! every batch still appears in a result, duplicates only as documented (a frame published
-//! again after the takeover, by another producer or epoch), and counted.
+//! One module per guarantee: [`basic`] (one replica: every batch published, malformed records
+//! skipped, resume after a restart, protobuf), [`rebalance`] (replicas joining, dying and
+//! coming back mid-stream and mid-frame lose no camera batch).
+
+mod basic;
+mod rebalance;
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Duration;
@@ -124,6 +123,8 @@ impl Results {
             .set("bootstrap.servers", &broker.addr)
             .set("group.id", format!("checker-{topic}"))
             .set("auto.offset.reset", "earliest")
+            // tansu holds a group's first rebalance for half the session timeout.
+            .set("session.timeout.ms", "6000")
             .set("enable.auto.commit", "false")
             .create()
             .unwrap();
@@ -282,10 +283,6 @@ fn kafka_args(broker: &Broker, group: &str, id: &str) -> Vec<String> {
         group,
         "--kafka-producer-id",
         id,
-        "--kafka-property",
-        "session.timeout.ms=6000",
-        "--kafka-property",
-        "heartbeat.interval.ms=500",
         "--sync-timeout",
         "5s",
     ]
@@ -337,280 +334,4 @@ async fn metrics_text(base: &str) -> String {
         .text()
         .await
         .unwrap()
-}
-
-#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
-async fn one_replica_publishes_every_batch_skips_malformed_and_resumes_after_restart() {
-    let Some(Setup {
-        broker, bin, lines, ..
-    }) = setup(4, 20)
-    else {
-        return;
-    };
-    broker.create_topic("dead", 1);
-    let scenes: Vec<String> = vec!["north".into(), "south".into()];
-    let mut args = model_args(&scenes);
-    args.extend(kafka_args(&broker, "replicas", "r1"));
-    args.extend(["--kafka-dead-letter-topic".into(), "dead".into()]);
-    let (child, base) = serve(bin, &args).await;
-    let p = producer(&broker);
-    let mut results = Results::new(&broker, "results");
-
-    // The first 10 frames of both scenes, with malformed records in the middle of `north`'s
-    // partition (not JSON, not a batch, no key) and a rejected one (a scene nobody serves).
-    let mut expected = Vec::new();
-    for (i, (cam, frame, line)) in lines.iter().enumerate() {
-        if *frame >= 10 {
-            continue;
-        }
-        for s in &scenes {
-            send(&p, "batches", Some(s), line).await;
-            expected.push((s.clone(), cam.clone(), *frame));
-        }
-        if i == 8 {
-            send(&p, "batches", Some("north"), "{not json").await;
-            send(&p, "batches", Some("north"), r#"{"scene":"north"}"#).await;
-            send(&p, "batches", None, &lines[0].2).await;
-            send(&p, "batches", Some("nowhere"), &lines[0].2).await;
-        }
-    }
-    results.wait_cover(&expected).await;
-    let m = records_counted(&base, expected.len(), 3).await;
-    assert!(m.contains("crossview_kafka_assigned{"), "{m}");
-    // Consumer lag is exported per owned partition that holds records (librdkafka
-    // statistics, every 2 s) and falls to 0 once everything is consumed and committed.
-    let mut lags = Vec::new();
-    for _ in 0..150 {
-        let m = metrics_text(&base).await;
-        lags = m
-            .lines()
-            .filter(|l| l.starts_with("crossview_kafka_consumer_lag{topic=\"batches\""))
-            .map(String::from)
-            .collect();
-        if !lags.is_empty() && lags.iter().all(|l| l.ends_with(" 0")) {
-            break;
-        }
-        tokio::time::sleep(Duration::from_millis(200)).await;
-    }
-    assert!(
-        !lags.is_empty() && lags.iter().all(|l| l.ends_with(" 0")),
-        "consumer lag never reached 0: {lags:?}"
-    );
-    assert_eq!(
-        metric(&m, "crossview_kafka_records_total{outcome=\"rejected\"}"),
-        1.0,
-        "{m}"
-    );
-    // The refused records went to the dead-letter topic, each saying why.
-    let dead: StreamConsumer = ClientConfig::new()
-        .set("bootstrap.servers", &broker.addr)
-        .set("group.id", "checker-dead")
-        .set("auto.offset.reset", "earliest")
-        .create()
-        .unwrap();
-    dead.subscribe(&["dead"]).unwrap();
-    let mut reasons = Vec::new();
-    while reasons.len() < 4 {
-        let m = guard("dead letters", dead.recv()).await.unwrap();
-        let why = header(&m, "crossview-error").expect("crossview-error header");
-        reasons.push(why);
-    }
-    assert!(reasons.iter().any(|r| r.contains("nowhere")), "{reasons:?}");
-    assert!(
-        results.duplicates().is_empty(),
-        "{:?}",
-        results.duplicates()
-    );
-    // Everything published has its offsets committed: a graceful stop, then a new replica in
-    // the same group resumes after them.
-    signal(&child, "TERM");
-    let mut child = child;
-    guard("replica exit", async {
-        while child.try_wait().unwrap().is_none() {
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    })
-    .await;
-    let before = results.seen.len();
-    let mut args = model_args(&scenes);
-    args.extend(kafka_args(&broker, "replicas", "r2"));
-    let (_child, _base) = serve(bin, &args).await;
-    for (cam, frame, line) in &lines {
-        if *frame < 10 {
-            continue;
-        }
-        for s in &scenes {
-            send(&p, "batches", Some(s), line).await;
-            expected.push((s.clone(), cam.clone(), *frame));
-        }
-    }
-    results.wait_cover(&expected).await;
-    results.read_for(Duration::from_secs(1)).await;
-    let after: Vec<&Value> = results.seen[before..].iter().collect();
-    assert!(
-        after
-            .iter()
-            .all(|r| r["frame_id"].as_u64().unwrap() >= 10 && r["producer"]["id"] == "r2"),
-        "the restarted replica re-published a frame already committed"
-    );
-    assert!(
-        results.duplicates().is_empty(),
-        "{:?}",
-        results.duplicates()
-    );
-}
-
-#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
-async fn two_replicas_share_scenes_and_one_killed_hands_them_over() {
-    let Some(Setup {
-        broker, bin, lines, ..
-    }) = setup(4, 24)
-    else {
-        return;
-    };
-    let scenes: Vec<String> = (0..8).map(|i| format!("scene{i}")).collect();
-    let mut a_args = model_args(&scenes);
-    a_args.extend(kafka_args(&broker, "replicas", "a"));
-    let mut b_args = model_args(&scenes);
-    b_args.extend(kafka_args(&broker, "replicas", "b"));
-    let (mut a, a_base) = serve(bin, &a_args).await;
-    let (_b, b_base) = serve(bin, &b_args).await;
-    // Both own partitions once the group has settled.
-    for base in [&a_base, &b_base] {
-        guard("assignment", async {
-            loop {
-                let m = metrics_text(base).await;
-                if m.lines()
-                    .any(|l| l.starts_with("crossview_kafka_assigned{") && l.ends_with(" 1"))
-                {
-                    break;
-                }
-                tokio::time::sleep(Duration::from_millis(100)).await;
-            }
-        })
-        .await;
-    }
-    let p = producer(&broker);
-    let mut results = Results::new(&broker, "results");
-    let mut expected = Vec::new();
-    for (cam, frame, line) in &lines {
-        if *frame >= 12 {
-            continue;
-        }
-        for s in &scenes {
-            send(&p, "batches", Some(s), line).await;
-            expected.push((s.clone(), cam.clone(), *frame));
-        }
-    }
-    results.wait_cover(&expected).await;
-    let producers: BTreeSet<&str> = results
-        .seen
-        .iter()
-        .filter_map(|r| r["producer"]["id"].as_str())
-        .collect();
-    assert_eq!(
-        producers,
-        BTreeSet::from(["a", "b"]),
-        "both replicas own scenes"
-    );
-    // Mid-stream: half of the rest sent, A killed, the rest sent.
-    let rest: Vec<&Line> = lines.iter().filter(|(_, f, _)| *f >= 12).collect();
-    let (first, second) = rest.split_at(rest.len() / 2);
-    for (cam, frame, line) in first {
-        for s in &scenes {
-            send(&p, "batches", Some(s), line).await;
-            expected.push((s.clone(), cam.clone(), *frame));
-        }
-    }
-    signal(&a, "KILL");
-    let _ = a.wait();
-    for (cam, frame, line) in second {
-        for s in &scenes {
-            send(&p, "batches", Some(s), line).await;
-            expected.push((s.clone(), cam.clone(), *frame));
-        }
-    }
-    results.wait_cover(&expected).await;
-    results.read_for(Duration::from_secs(1)).await;
-    let dups = results.duplicates();
-    eprintln!(
-        "{} results, {} frames published more than once after the SIGKILL",
-        results.seen.len(),
-        dups.len()
-    );
-    for (frame, copies) in &dups {
-        let distinct: BTreeSet<&(String, u64)> = copies.iter().collect();
-        assert_eq!(
-            distinct.len(),
-            copies.len(),
-            "{frame:?} published twice by one producer and epoch: {copies:?}"
-        );
-    }
-    // B took A's scenes over: after the kill every scene's last frame came from B.
-    let last = lines.iter().map(|(_, f, _)| *f).max().unwrap();
-    for s in &scenes {
-        assert!(
-            results.seen.iter().any(|r| r["scene"] == s.as_str()
-                && r["frame_id"].as_u64() == Some(last)
-                && r["producer"]["id"] == "b"),
-            "{s}: its last frame was not published by the surviving replica"
-        );
-    }
-}
-
-#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
-async fn protobuf_batches_in_and_protobuf_results_out() {
-    let Some(Setup {
-        broker, bin, lines, ..
-    }) = setup(2, 6)
-    else {
-        return;
-    };
-    let scenes: Vec<String> = vec!["east".into()];
-    let mut args = model_args(&scenes);
-    args.extend(kafka_args(&broker, "proto", "p1"));
-    args.extend(["--kafka-output-format".into(), "protobuf".into()]);
-    let (_child, base) = serve(bin, &args).await;
-    let p = producer(&broker);
-    let mut results = Results::new(&broker, "results");
-    // Even frames as protobuf `Batch` (named by the header), odd ones as JSON lines without
-    // a header (the default input format); one record with a content type nobody reads.
-    let mut expected = Vec::new();
-    for (cam, frame, line) in &lines {
-        let batch: crossview_core::Batch = serde_json::from_str(line).unwrap();
-        if frame % 2 == 0 {
-            use prost::Message as _;
-            let pb = crossview_api::convert::batch_to_pb("east", &batch).encode_to_vec();
-            send_with(
-                &p,
-                "batches",
-                Some("east"),
-                &pb,
-                Some("application/x-protobuf"),
-            )
-            .await;
-        } else {
-            send(&p, "batches", Some("east"), line).await;
-        }
-        expected.push(("east".to_string(), cam.clone(), *frame));
-        if expected.len() == 3 {
-            send_with(
-                &p,
-                "batches",
-                Some("east"),
-                line.as_bytes(),
-                Some("text/csv"),
-            )
-            .await;
-        }
-    }
-    results.wait_cover(&expected).await;
-    assert!(
-        results
-            .seen
-            .iter()
-            .all(|r| r["identities"].as_u64() > Some(0)),
-        "every frame of the clean simulation associates someone"
-    );
-    records_counted(&base, expected.len(), 1).await;
 }

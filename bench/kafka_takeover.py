@@ -1,0 +1,316 @@
+"""Kafka mode takeover benchmark (BENCHMARKS.md, "Kafka mode"; run by bench/kafka_takeover.sh).
+
+A fresh tansu broker (in memory), an 8-partition input topic, two `crossview serve` replicas in
+one group with the shipped settings, 8 scenes of 7 cameras at 10 frames/s, each frame's camera
+batches spread evenly over 50 ms (keyed by scene, the default partitioner), replica A killed
+with SIGKILL at --kill-at and restarted at --restart-at. Afterwards every topic is read from the
+beginning with an independent client, and the run prints:
+
+* camera batches lost: batches the broker acknowledged that are in no result of their frame
+  (their camera reported), and the dead-letter records;
+* frames lost: frames sent with no result at all;
+* takeover: for the scenes A published before the kill, the longest time from the kill to the
+  first result of that scene published by another replica;
+* survivor stall: for the scenes B published before the kill, the longest gap between two
+  consecutive results of one scene (broker timestamps) from the kill to the end of sending;
+  also the longest gap of any scene around the restart;
+* duplicates: frames published more than once, whether each copy carries producer id and
+  epoch, distinct per copy, and how many copies are partial.
+
+Usage: python bench/kafka_takeover.py --crossview target/release/crossview --tansu .cache/tansu/tansu
+         --out DIR [--seconds 45 --kill-at 10 --restart-at 25 --run N]
+"""
+
+import argparse
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+
+from confluent_kafka import OFFSET_BEGINNING, Consumer, Producer, TopicPartition
+
+SCENES = 8
+FPS = 10
+SPREAD_S = 0.050
+
+
+def free_port():
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+def wait_port(port, timeout=20):
+    t = time.time()
+    while time.time() - t < timeout:
+        try:
+            socket.create_connection(("127.0.0.1", port), 0.2).close()
+            return
+        except OSError:
+            time.sleep(0.05)
+    raise SystemExit(f"nothing listens on {port}")
+
+
+def metrics(port):
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=2) as r:
+            return r.read().decode()
+    except OSError:
+        return ""
+
+
+def ready(port):
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/readyz", timeout=2) as r:
+            return r.status == 200
+    except OSError:
+        return False
+
+
+def owned(port):
+    return {
+        line.split('partition="')[1].split('"')[0]
+        for line in metrics(port).splitlines()
+        if line.startswith("crossview_kafka_assigned{") and line.endswith(" 1")
+    }
+
+
+class Replica:
+    def __init__(self, args, broker, models, name, log):
+        self.port = free_port()
+        self.name = name
+        cmd = [
+            args.crossview, "serve", "--listen", f"127.0.0.1:{self.port}", "--model", models,
+            "--kafka-brokers", broker, "--kafka-input-topic", "batches",
+            "--kafka-output-topic", "results", "--kafka-dead-letter-topic", "dead",
+            "--kafka-group", "replicas", "--kafka-producer-id", name,
+        ] + args.replica_args.split()
+        self.started = time.time()
+        self.proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+
+    def wait_ready(self, timeout=60):
+        t = time.time()
+        while time.time() - t < timeout:
+            if ready(self.port):
+                return time.time() - self.started
+            time.sleep(0.05)
+        raise SystemExit(f"replica {self.name} not ready after {timeout} s")
+
+
+def read_all(broker, topic):
+    """Every record of `topic`, from the beginning to its current end (no consumer group)."""
+    c = Consumer({"bootstrap.servers": broker, "group.id": "unused", "enable.auto.commit": False})
+    parts = c.list_topics(topic, timeout=10).topics[topic].partitions
+    ends, tps = {}, []
+    for p in parts:
+        lo, hi = c.get_watermark_offsets(TopicPartition(topic, p), timeout=10)
+        if hi > lo:
+            ends[p] = hi
+            tps.append(TopicPartition(topic, p, OFFSET_BEGINNING))
+    out = []
+    if tps:
+        c.assign(tps)
+        t = time.time()
+        while ends and time.time() - t < 60:
+            m = c.poll(0.5)
+            if m is None or m.error():
+                continue
+            out.append(m)
+            if m.offset() + 1 >= ends.get(m.partition(), 0):
+                ends.pop(m.partition(), None)
+    c.close()
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--crossview", required=True)
+    ap.add_argument("--tansu", required=True)
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--seconds", type=float, default=45)
+    ap.add_argument("--kill-at", type=float, default=10)
+    ap.add_argument("--restart-at", type=float, default=25)
+    ap.add_argument("--run", default="1")
+    ap.add_argument("--replica-args", default="", help="extra `crossview serve` flags")
+    a = ap.parse_args()
+    os.makedirs(a.out, exist_ok=True)
+    rec = os.path.join(a.out, "rec.jsonl")
+    model = os.path.join(a.out, "model.onnx")
+    if not os.path.exists(model):
+        subprocess.run([a.crossview, "simulate", "--preset", "wildtrack", "--frames", "600",
+                        "--seed", "11", "--out", rec], check=True, capture_output=True)
+        subprocess.run([a.crossview, "model", "init", "--scene-from", rec, "--out", model,
+                        "--width", "64"], check=True, capture_output=True)
+    with open(rec) as f:
+        header = json.loads(f.readline())
+        lines = [json.loads(x) for x in f]
+    scene = header["scene"]["name"]
+    cameras = [c["name"] if isinstance(c, dict) else c for c in header["scene"]["cameras"]]
+    by_frame = {}
+    for b in lines:
+        by_frame.setdefault(b["frame_id"], {})[b["camera"]] = b
+    frame_ids = sorted(by_frame)
+    names = [f"{scene}-{i}" for i in range(SCENES)]
+    models = ",".join(f"{n}={model}" for n in names)
+
+    logs = open(os.path.join(a.out, f"run{a.run}.log"), "w")
+    bport = free_port()
+    broker = f"127.0.0.1:{bport}"
+    procs = []
+    tansu = subprocess.Popen([a.tansu, "broker", "--listener-url", f"tcp://{broker}",
+                              "--advertised-listener-url", f"tcp://{broker}",
+                              "--storage-engine", "memory://tansu/"],
+                             stdout=logs, stderr=subprocess.STDOUT, env={**os.environ, "RUST_LOG": "warn"})
+    procs.append(tansu)
+    try:
+        wait_port(bport)
+        for t, n in (("batches", 8), ("results", 1), ("dead", 1)):
+            subprocess.run([a.tansu, "topic", "create", t, "--partitions", str(n),
+                            "--broker", f"tcp://{broker}"], check=True, capture_output=True)
+        ra = Replica(a, broker, models, "a", logs)
+        rb = Replica(a, broker, models, "b", logs)
+        procs += [ra.proc, rb.proc]
+        ready_a, ready_b = ra.wait_ready(), rb.wait_ready()
+        t = time.time()
+        while len(owned(ra.port) | owned(rb.port)) < 8 and time.time() - t < 60:
+            time.sleep(0.1)
+        settle = time.time() - ra.started
+
+        acked, failed = [], [0]
+
+        def on_delivery(err, msg):
+            if err is None:
+                acked.append((msg.key().decode(), json.loads(msg.value())["camera"],
+                               json.loads(msg.value())["frame_id"]))
+            else:
+                failed[0] += 1
+
+        p = Producer({"bootstrap.servers": broker, "linger.ms": 1, "enable.idempotence": True})
+        # The schedule: frame k of every scene at k / FPS, camera c at c * SPREAD / (n - 1).
+        events = []
+        n_frames = int(a.seconds * FPS)
+        for k in range(n_frames):
+            # The recording's detections, looped; frame ids keep growing.
+            fid = k + 1
+            src = by_frame[frame_ids[k % len(frame_ids)]]
+            for ci, cam in enumerate(cameras):
+                if cam not in src:
+                    continue
+                at = k / FPS + ci * SPREAD_S / max(1, len(cameras) - 1)
+                body = dict(src[cam])
+                body["frame_id"] = fid
+                events.append((at, json.dumps(body)))
+        events.sort(key=lambda e: e[0])
+        t0 = time.time()
+        killed_at = restarted_at = None
+        ra2 = None
+        i = 0
+        while i < len(events):
+            now = time.time() - t0
+            if killed_at is None and now >= a.kill_at:
+                ra.proc.send_signal(signal.SIGKILL)
+                killed_at = time.time()
+            if restarted_at is None and now >= a.restart_at:
+                ra2 = Replica(a, broker, models, "a2", logs)
+                procs.append(ra2.proc)
+                restarted_at = time.time()
+            at, body = events[i]
+            if at > now:
+                p.poll(min(at - now, 0.005))
+                continue
+            for n in names:
+                p.produce("batches", key=n, value=body, on_delivery=on_delivery)
+            p.poll(0)
+            i += 1
+        sent_end = time.time()
+        p.flush(30)
+        # Drain: wait until no new results for 5 s (bounded by 60 s).
+        time.sleep(5)
+        res = read_all(broker, "results")
+        dead = read_all(broker, "dead")
+    finally:
+        for pr in procs:
+            if pr.poll() is None:
+                pr.send_signal(signal.SIGTERM)
+        for pr in procs:
+            try:
+                pr.wait(15)
+            except subprocess.TimeoutExpired:
+                pr.kill()
+
+    results = []
+    for m in res:
+        v = json.loads(m.value())
+        results.append({
+            "scene": v["scene"], "frame": v["frame_id"], "missing": v.get("missing_cameras") or [],
+            "producer": (v.get("producer") or {}).get("id"),
+            "epoch": (v.get("producer") or {}).get("epoch"), "ts": m.timestamp()[1] / 1000.0,
+        })
+    reported = {}
+    copies = {}
+    for r in results:
+        key = (r["scene"], r["frame"])
+        copies.setdefault(key, []).append(r)
+        reported.setdefault(key, set()).update(c for c in cameras if c not in r["missing"])
+    frames_sent = {(s, f) for s, _, f in acked}
+    batches_lost = sum(1 for s, c, f in acked if c not in reported.get((s, f), set()))
+    frames_lost = sum(1 for k in frames_sent if k not in copies)
+    dups = {k: v for k, v in copies.items() if len(v) > 1}
+    dup_tagged = all(c["producer"] and c["epoch"] is not None for v in dups.values() for c in v)
+    dup_distinct = all(len({(c["producer"], c["epoch"]) for c in v}) == len(v) for v in dups.values())
+    partial_copies = sum(1 for v in dups.values() for c in v if c["missing"])
+    partial = sum(1 for r in results if r["missing"])
+    before = [r for r in results if r["ts"] < killed_at]
+    a_scenes = {r["scene"] for r in before if r["producer"] == "a"}
+    b_scenes = {r["scene"] for r in before if r["producer"] == "b"}
+    takeover = 0.0
+    for s in a_scenes:
+        later = [r["ts"] for r in results if r["scene"] == s and r["ts"] >= killed_at and r["producer"] != "a"]
+        takeover = max(takeover, (min(later) - killed_at) if later else float("inf"))
+
+    def max_gap(scenes, start, end):
+        worst = 0.0
+        for s in scenes:
+            ts = sorted(r["ts"] for r in results if r["scene"] == s and start <= r["ts"] <= end)
+            worst = max([worst] + [b - a_ for a_, b in zip(ts, ts[1:])])
+        return worst
+
+    reasons = {}
+    for m in dead:
+        why = dict(m.headers() or []).get("crossview-error", b"").decode()
+        when = m.timestamp()[1] / 1000.0
+        phase = "before-kill" if when < killed_at else ("kill-restart" if when < restarted_at else "after-restart")
+        k = f"{phase}: {why.split(':')[0][:40]}"
+        reasons[k] = reasons.get(k, 0) + 1
+    partial_when = {}
+    for r in results:
+        if r["missing"]:
+            phase = "before-kill" if r["ts"] < killed_at else ("kill-restart" if r["ts"] < restarted_at else "after-restart")
+            partial_when[phase] = partial_when.get(phase, 0) + 1
+    report = {
+        "run": a.run, "frames_sent": len(frames_sent), "batches_sent": len(acked),
+        "batches_not_acked": failed[0], "results": len(results), "partial_results": partial,
+        "camera_batches_lost": batches_lost, "dead_letters": len(dead), "frames_lost": frames_lost,
+        "takeover_s": round(takeover, 2),
+        "survivor_max_stall_s": round(max_gap(b_scenes, killed_at, sent_end), 2),
+        "max_stall_any_scene_after_restart_s": round(max_gap(a_scenes | b_scenes, restarted_at, sent_end), 2),
+        "duplicates": len(dups), "duplicates_partial_copies": partial_copies,
+        "duplicates_all_with_producer_epoch": dup_tagged, "duplicate_copies_distinct": dup_distinct,
+        "first_readyz_s": [round(ready_a, 2), round(ready_b, 2)], "all_assigned_s": round(settle, 2),
+        "scenes_a_b": [len(a_scenes), len(b_scenes)],
+        "dead_letter_reasons": reasons, "partial_results_by_phase": partial_when,
+    }
+    with open(os.path.join(a.out, f"run{a.run}.json"), "w") as f:
+        json.dump(report, f, indent=1)
+    print(json.dumps(report))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

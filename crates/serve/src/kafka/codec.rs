@@ -1,0 +1,143 @@
+//! Record values: input batches (JSON line or protobuf `Batch`, chosen by the `content-type`
+//! header) and output results (JSON with `producer`, or protobuf `FrameResult`).
+use rdkafka::message::Message;
+
+use crossview_api::convert::{batch_from_pb, result_to_pb};
+use crossview_api::pb;
+use crossview_core::{Batch, Error, Result};
+use prost::Message as _;
+
+use super::ValueFormat;
+
+/// The format a record's `content-type` header names: `None` without the header, an error
+/// for a type we do not read.
+pub(super) fn content_type<M: Message>(msg: &M) -> Option<Result<ValueFormat>> {
+    use rdkafka::message::Headers;
+    let headers = msg.headers()?;
+    let h = headers
+        .iter()
+        .find(|h| h.key.eq_ignore_ascii_case("content-type"))?;
+    let v = h.value.unwrap_or_default();
+    Some(ValueFormat::from_content_type(v).ok_or_else(|| {
+        Error::invalid(
+            "content-type",
+            format!(
+                "'{}' is not application/json or application/x-protobuf",
+                crate::truncate_echo(&String::from_utf8_lossy(v))
+            ),
+        )
+    }))
+}
+
+/// A record's scene (its key) and batch (its value: a SPEC §7 batch line, or a protobuf
+/// `Batch` whose `scene`, if set, must equal the key).
+pub(super) fn decode(
+    key: Option<&[u8]>,
+    payload: Option<&[u8]>,
+    format: ValueFormat,
+) -> Result<(String, Batch)> {
+    let scene = key
+        .filter(|k| !k.is_empty())
+        .ok_or_else(|| Error::invalid("key", "a record needs its scene name as key"))?;
+    let scene = std::str::from_utf8(scene)
+        .map_err(|_| Error::invalid("key", "the scene name is not UTF-8"))?
+        .to_string();
+    let value = payload.ok_or_else(|| Error::invalid("value", "empty record"))?;
+    let batch = match format {
+        ValueFormat::Json => {
+            serde_json::from_slice(value).map_err(|e| Error::invalid("value", e.to_string()))?
+        }
+        ValueFormat::Protobuf => {
+            let pb = pb::Batch::decode(value)
+                .map_err(|e| Error::invalid("value", format!("not a protobuf Batch: {e}")))?;
+            if !pb.scene.is_empty() && pb.scene != scene {
+                return Err(Error::invalid(
+                    "scene",
+                    format!(
+                        "the batch names scene '{}' but the record key is '{}'",
+                        crate::truncate_echo(&pb.scene),
+                        crate::truncate_echo(&scene)
+                    ),
+                ));
+            }
+            batch_from_pb(pb)?.1
+        }
+    };
+    Ok((scene, batch))
+}
+
+/// A result's record value: JSON with `producer` added, or the protobuf `FrameResult` (whose
+/// producer is in the headers only).
+pub(super) fn encode_result(
+    result: &crossview_api::types::FrameResult,
+    format: ValueFormat,
+    producer: &str,
+    epoch: u64,
+) -> Result<Vec<u8>> {
+    match format {
+        ValueFormat::Protobuf => Ok(result_to_pb(result).encode_to_vec()),
+        ValueFormat::Json => {
+            let mut value = serde_json::to_value(result)
+                .map_err(|e| Error::internal_from("encode result", e))?;
+            if let Some(obj) = value.as_object_mut() {
+                obj.insert(
+                    "producer".into(),
+                    serde_json::json!({"id": producer, "epoch": epoch}),
+                );
+            }
+            Ok(value.to_string().into_bytes())
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kafka::KafkaConfig;
+    use crossview_core::Batch;
+
+    #[test]
+    fn records_need_a_scene_key_and_a_batch_line() {
+        let line = br#"{"camera":"c0","frame_id":3,"detections":[]}"#;
+        let json = ValueFormat::Json;
+        let (scene, b) = decode(Some(b"lab"), Some(line), json).unwrap();
+        assert_eq!((scene.as_str(), b.frame_id), ("lab", 3));
+        assert!(decode(None, Some(line), json).is_err());
+        assert!(decode(Some(&[0xff]), Some(line), json).is_err());
+        assert!(decode(Some(b"lab"), Some(b"{not json"), json).is_err());
+        assert!(decode(Some(b"lab"), None, json).is_err());
+        let p = KafkaConfig::parse_property("sasl.password=x=y").unwrap();
+        assert_eq!(p, ("sasl.password".into(), "x=y".into()));
+        assert!(KafkaConfig::parse_property("novalue").is_err());
+        let mut c = KafkaConfig::new("b:9092", "in", "out", "g");
+        c.properties.push(p);
+        assert!(!format!("{c:?}").contains("x=y"));
+    }
+
+    #[test]
+    fn protobuf_values_decode_and_must_agree_with_the_key() {
+        let batch = Batch {
+            camera: "c0".into(),
+            frame_id: 7,
+            detections: vec![],
+        };
+        let proto = ValueFormat::Protobuf;
+        let bytes = crossview_api::convert::batch_to_pb("lab", &batch).encode_to_vec();
+        let (scene, b) = decode(Some(b"lab"), Some(&bytes), proto).unwrap();
+        assert_eq!(
+            (scene.as_str(), b.camera.as_str(), b.frame_id),
+            ("lab", "c0", 7)
+        );
+        let unnamed = crossview_api::convert::batch_to_pb("", &batch).encode_to_vec();
+        assert_eq!(
+            decode(Some(b"lab"), Some(&unnamed), proto).unwrap().0,
+            "lab"
+        );
+        assert!(decode(Some(b"other"), Some(&bytes), proto).is_err());
+        assert!(decode(Some(b"lab"), Some(b"\xff\xff\xff"), proto).is_err());
+        // A JSON line read as protobuf (and the other way round) is malformed, not a panic.
+        let line = br#"{"camera":"c0","frame_id":3,"detections":[]}"#;
+        assert!(decode(Some(b"lab"), Some(line), proto).is_err());
+        assert!(decode(Some(b"lab"), Some(&bytes), ValueFormat::Json).is_err());
+    }
+}

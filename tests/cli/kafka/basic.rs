@@ -1,0 +1,193 @@
+//! One replica: every accepted batch appears in a published result (its camera reported in a
+//! result of its scene and frame); a malformed record is counted and skipped without stalling
+//! its partition; a replica restarted in the same group resumes from the committed offsets
+//! (nothing already published is published again after a graceful stop); protobuf batches in
+//! and protobuf results out.
+
+use std::time::Duration;
+
+use rdkafka::config::ClientConfig;
+use rdkafka::consumer::{Consumer, StreamConsumer};
+use serde_json::Value;
+
+use super::*;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn one_replica_publishes_every_batch_skips_malformed_and_resumes_after_restart() {
+    let Some(Setup {
+        broker, bin, lines, ..
+    }) = setup(4, 20)
+    else {
+        return;
+    };
+    broker.create_topic("dead", 1);
+    let scenes: Vec<String> = vec!["north".into(), "south".into()];
+    let mut args = model_args(&scenes);
+    args.extend(kafka_args(&broker, "replicas", "r1"));
+    args.extend(["--kafka-dead-letter-topic".into(), "dead".into()]);
+    let (child, base) = serve(bin, &args).await;
+    let p = producer(&broker);
+    let mut results = Results::new(&broker, "results");
+
+    // The first 10 frames of both scenes, with malformed records in the middle of `north`'s
+    // partition (not JSON, not a batch, no key) and a rejected one (a scene nobody serves).
+    let mut expected = Vec::new();
+    for (i, (cam, frame, line)) in lines.iter().enumerate() {
+        if *frame >= 10 {
+            continue;
+        }
+        for s in &scenes {
+            send(&p, "batches", Some(s), line).await;
+            expected.push((s.clone(), cam.clone(), *frame));
+        }
+        if i == 8 {
+            send(&p, "batches", Some("north"), "{not json").await;
+            send(&p, "batches", Some("north"), r#"{"scene":"north"}"#).await;
+            send(&p, "batches", None, &lines[0].2).await;
+            send(&p, "batches", Some("nowhere"), &lines[0].2).await;
+        }
+    }
+    results.wait_cover(&expected).await;
+    let m = records_counted(&base, expected.len(), 3).await;
+    assert!(m.contains("crossview_kafka_assigned{"), "{m}");
+    // Consumer lag is exported per owned partition that holds records (librdkafka
+    // statistics, every 2 s) and falls to 0 once everything is consumed and committed.
+    let mut lags = Vec::new();
+    for _ in 0..150 {
+        let m = metrics_text(&base).await;
+        lags = m
+            .lines()
+            .filter(|l| l.starts_with("crossview_kafka_consumer_lag{topic=\"batches\""))
+            .map(String::from)
+            .collect();
+        if !lags.is_empty() && lags.iter().all(|l| l.ends_with(" 0")) {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    assert!(
+        !lags.is_empty() && lags.iter().all(|l| l.ends_with(" 0")),
+        "consumer lag never reached 0: {lags:?}"
+    );
+    assert_eq!(
+        metric(&m, "crossview_kafka_records_total{outcome=\"rejected\"}"),
+        1.0,
+        "{m}"
+    );
+    // The refused records went to the dead-letter topic, each saying why.
+    let dead: StreamConsumer = ClientConfig::new()
+        .set("bootstrap.servers", &broker.addr)
+        .set("group.id", "checker-dead")
+        .set("auto.offset.reset", "earliest")
+        // tansu holds a group's first rebalance for half the session timeout.
+        .set("session.timeout.ms", "6000")
+        .create()
+        .unwrap();
+    dead.subscribe(&["dead"]).unwrap();
+    let mut reasons = Vec::new();
+    while reasons.len() < 4 {
+        let m = guard("dead letters", dead.recv()).await.unwrap();
+        let why = header(&m, "crossview-error").expect("crossview-error header");
+        reasons.push(why);
+    }
+    assert!(reasons.iter().any(|r| r.contains("nowhere")), "{reasons:?}");
+    assert!(
+        results.duplicates().is_empty(),
+        "{:?}",
+        results.duplicates()
+    );
+    // Everything published has its offsets committed: a graceful stop, then a new replica in
+    // the same group resumes after them.
+    signal(&child, "TERM");
+    let mut child = child;
+    guard("replica exit", async {
+        while child.try_wait().unwrap().is_none() {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    let before = results.seen.len();
+    let mut args = model_args(&scenes);
+    args.extend(kafka_args(&broker, "replicas", "r2"));
+    let (_child, _base) = serve(bin, &args).await;
+    for (cam, frame, line) in &lines {
+        if *frame < 10 {
+            continue;
+        }
+        for s in &scenes {
+            send(&p, "batches", Some(s), line).await;
+            expected.push((s.clone(), cam.clone(), *frame));
+        }
+    }
+    results.wait_cover(&expected).await;
+    results.read_for(Duration::from_secs(1)).await;
+    let after: Vec<&Value> = results.seen[before..].iter().collect();
+    assert!(
+        after
+            .iter()
+            .all(|r| r["frame_id"].as_u64().unwrap() >= 10 && r["producer"]["id"] == "r2"),
+        "the restarted replica re-published a frame already committed"
+    );
+    assert!(
+        results.duplicates().is_empty(),
+        "{:?}",
+        results.duplicates()
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn protobuf_batches_in_and_protobuf_results_out() {
+    let Some(Setup {
+        broker, bin, lines, ..
+    }) = setup(2, 6)
+    else {
+        return;
+    };
+    let scenes: Vec<String> = vec!["east".into()];
+    let mut args = model_args(&scenes);
+    args.extend(kafka_args(&broker, "proto", "p1"));
+    args.extend(["--kafka-output-format".into(), "protobuf".into()]);
+    let (_child, base) = serve(bin, &args).await;
+    let p = producer(&broker);
+    let mut results = Results::new(&broker, "results");
+    // Even frames as protobuf `Batch` (named by the header), odd ones as JSON lines without
+    // a header (the default input format); one record with a content type nobody reads.
+    let mut expected = Vec::new();
+    for (cam, frame, line) in &lines {
+        let batch: crossview_core::Batch = serde_json::from_str(line).unwrap();
+        if frame % 2 == 0 {
+            use prost::Message as _;
+            let pb = crossview_api::convert::batch_to_pb("east", &batch).encode_to_vec();
+            send_with(
+                &p,
+                "batches",
+                Some("east"),
+                &pb,
+                Some("application/x-protobuf"),
+            )
+            .await;
+        } else {
+            send(&p, "batches", Some("east"), line).await;
+        }
+        expected.push(("east".to_string(), cam.clone(), *frame));
+        if expected.len() == 3 {
+            send_with(
+                &p,
+                "batches",
+                Some("east"),
+                line.as_bytes(),
+                Some("text/csv"),
+            )
+            .await;
+        }
+    }
+    results.wait_cover(&expected).await;
+    assert!(
+        results
+            .seen
+            .iter()
+            .all(|r| r["identities"].as_u64() > Some(0)),
+        "every frame of the clean simulation associates someone"
+    );
+    records_counted(&base, expected.len(), 1).await;
+}
