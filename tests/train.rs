@@ -26,6 +26,7 @@ fn synthetic(frames: usize, people: usize, seed: u64) -> Recording {
     let cams: Vec<CameraSpec> = ["left", "front", "right"]
         .iter()
         .map(|n| CameraSpec {
+            offset: 0,
             name: n.to_string(),
             width: W,
             height: H,

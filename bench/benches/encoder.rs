@@ -51,6 +51,7 @@ fn bench_encoder(c: &mut Criterion) {
     let meta = ModelMetadata::new(
         (0..CAMERAS)
             .map(|i| CameraSpec {
+                offset: 0,
                 name: format!("C{}", i + 1),
                 width: 1920,
                 height: 1080,

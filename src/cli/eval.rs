@@ -196,7 +196,7 @@ fn config(
 /// Loads `workers` encoder sessions of `model` (one ONNX Runtime thread each), one thread
 /// each, while this thread reads the recording `data`. A model error is reported before a
 /// data error.
-fn load_and_read(
+pub(crate) fn load_and_read(
     model: &Path,
     data: &[PathBuf],
     workers: usize,

@@ -8,6 +8,7 @@ pub mod import;
 pub mod model;
 pub mod serve;
 pub mod simulate;
+pub mod sync_check;
 pub mod train;
 
 /// Self-supervised multi-view person association: train, evaluate, serve.
@@ -70,6 +71,8 @@ pub enum Command {
     Train(train::TrainArgs),
     /// Stream a simulated scene through the server and show the association and its accuracy live.
     Demo(demo::DemoArgs),
+    /// Each camera's clock offset, estimated from a recording's detections with the model.
+    SyncCheck(sync_check::SyncCheckArgs),
 }
 
 /// Entry point used by `main`.
@@ -86,5 +89,6 @@ pub fn run() -> anyhow::Result<()> {
         Command::Simulate(args) => simulate::run(args),
         Command::Train(args) => train::run(args),
         Command::Demo(args) => demo::run(args),
+        Command::SyncCheck(args) => sync_check::run(args),
     }
 }

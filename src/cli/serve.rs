@@ -7,6 +7,7 @@ use clap::Args;
 
 use crossview_core::tracking::TrackerConfig;
 use crossview_serve::config::SceneDecl;
+use crossview_serve::scene::ClockWatchConfig;
 use crossview_serve::{
     ConnectionLimits, KafkaConfig, Limits, ModelSpec, RecordConfig, ServeConfig, TlsConfig,
     ValueFormat,
@@ -101,6 +102,23 @@ pub struct ServeArgs {
     /// rejected lines outnumber accepted ones.
     #[arg(long, env = "CROSSVIEW_MAX_REJECTED_LINES", default_value_t = Limits::default().max_rejected_lines)]
     pub max_rejected_lines: usize,
+    /// Live clock watch: each camera's clock offset estimated from the last this many frames
+    /// (`GET /v1/scenes/{scene}`, `crossview_camera_offset_frames`, a warning when a camera is
+    /// out of sync); 0 turns it off.
+    #[arg(long, env = "CROSSVIEW_CLOCK_WATCH_WINDOW", default_value_t = ClockWatchConfig::default().window)]
+    pub clock_watch_window: usize,
+    /// At most one clock estimate per this interval (bounds the watch's CPU share).
+    #[arg(long, env = "CROSSVIEW_CLOCK_WATCH_INTERVAL", default_value = "10s", value_parser = parse_duration)]
+    pub clock_watch_interval: Duration,
+    /// Largest clock offset the watch searches, in frame steps either way (1..=100).
+    #[arg(long, env = "CROSSVIEW_CLOCK_WATCH_MAX_OFFSET", default_value_t = ClockWatchConfig::default().max_offset,
+          value_parser = clap::value_parser!(u32).range(1..=100))]
+    pub clock_watch_max_offset: u32,
+    /// Correct cameras' clock offsets from the live estimate: once two estimates over full,
+    /// successive windows agree that a camera is a whole number of frames off, its batches
+    /// go to the frame they belong to (every change logged and counted).
+    #[arg(long, env = "CROSSVIEW_AUTO_ALIGN")]
+    pub auto_align: bool,
     /// Most open connections; at the cap the longest-idle one is closed for a new one, or the
     /// new one is refused when none is idle. Keep it below `ulimit -n`.
     #[arg(long, env = "CROSSVIEW_MAX_CONNECTIONS", default_value_t = ConnectionLimits::default().max_connections)]
@@ -340,6 +358,10 @@ impl ServeArgs {
 
     /// The library configuration these flags describe.
     pub fn to_config(&self) -> anyhow::Result<ServeConfig> {
+        anyhow::ensure!(
+            !(self.auto_align && self.clock_watch_window == 0),
+            "--auto-align needs the clock watch: --clock-watch-window must be above 0"
+        );
         let models = self
             .models
             .iter()
@@ -378,6 +400,12 @@ impl ServeArgs {
                 frame_deadline: self.frame_deadline,
                 frame_window: self.frame_window,
                 max_rejected_lines: self.max_rejected_lines,
+                clock_watch: ClockWatchConfig {
+                    window: self.clock_watch_window,
+                    interval: self.clock_watch_interval,
+                    max_offset: self.clock_watch_max_offset,
+                    auto_align: self.auto_align,
+                },
             },
             connections: ConnectionLimits {
                 max_connections: self.max_connections,
@@ -434,6 +462,46 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[derive(clap::Parser)]
+    struct Cmd {
+        #[command(flatten)]
+        args: ServeArgs,
+    }
+
+    fn parse(extra: &[&str]) -> Result<ServeArgs, clap::Error> {
+        use clap::Parser;
+        let base = ["serve", "--scene", "lab=a:640x480,b:640x480@+2"];
+        Cmd::try_parse_from(base.iter().chain(extra)).map(|c| c.args)
+    }
+
+    #[test]
+    fn clock_watch_flags() {
+        let c = parse(&[]).unwrap().to_config().unwrap();
+        assert_eq!(c.limits.clock_watch, ClockWatchConfig::default());
+        assert_eq!(c.scenes[0].spec.cameras[1].offset, 2);
+        let c = parse(&[
+            "--auto-align",
+            "--clock-watch-window",
+            "120",
+            "--clock-watch-interval",
+            "2s",
+        ])
+        .unwrap()
+        .to_config()
+        .unwrap();
+        let w = c.limits.clock_watch;
+        assert!(w.auto_align);
+        assert_eq!((w.window, w.interval), (120, Duration::from_secs(2)));
+        let e = parse(&["--auto-align", "--clock-watch-window", "0"])
+            .unwrap()
+            .to_config()
+            .unwrap_err();
+        assert!(e.to_string().contains("--clock-watch-window"), "{e}");
+        for bad in ["0", "101", "-1"] {
+            assert!(parse(&["--clock-watch-max-offset", bad]).is_err(), "{bad}");
+        }
+    }
 
     #[test]
     fn durations_parse() {

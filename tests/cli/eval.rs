@@ -17,6 +17,7 @@ use rand_chacha::ChaCha8Rng;
 fn cameras() -> Vec<CameraSpec> {
     (0..3)
         .map(|i| CameraSpec {
+            offset: 0,
             name: format!("cam{i}"),
             width: 640,
             height: 480,

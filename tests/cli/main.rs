@@ -14,4 +14,5 @@ mod serve;
 mod served_identities_wildtrack;
 mod sighup_early;
 mod subscriber_memory;
+mod sync_check;
 mod train;

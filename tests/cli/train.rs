@@ -11,6 +11,7 @@ use crossview_model::read_weights;
 fn recording(cameras: usize, frames: usize, ids: bool) -> Recording {
     let cams: Vec<CameraSpec> = (0..cameras)
         .map(|c| CameraSpec {
+            offset: 0,
             name: format!("cam{c}"),
             width: 100,
             height: 100,

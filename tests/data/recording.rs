@@ -13,11 +13,13 @@ fn scene() -> SceneSpec {
         name: "lab".into(),
         cameras: vec![
             CameraSpec {
+                offset: 0,
                 name: "a".into(),
                 width: 640,
                 height: 480,
             },
             CameraSpec {
+                offset: 0,
                 name: "b".into(),
                 width: 1920,
                 height: 1080,
@@ -103,6 +105,58 @@ fn round_trip_keeps_frames_views_and_empty_batches() {
     let back = read_recording(&path).unwrap();
     assert_eq!(back, rec);
     assert!(back.frames[1].is_complete());
+}
+
+/// A camera declared `@+2` (its clock runs two frame ids ahead): its batch `N` is grouped
+/// with the other cameras' frame `N − 2`, and writing gives back the camera's own ids.
+#[test]
+fn clock_offsets_group_batches_and_round_trip() {
+    let mut lagged = scene();
+    lagged.cameras[1].offset = 2;
+    let batch = |camera: &str, frame_id: u64, x: f32| Batch {
+        camera: camera.into(),
+        frame_id,
+        detections: vec![det(x, None)],
+    };
+    let batches = vec![
+        batch("a", 10, 1.0),
+        batch("b", 12, 2.0),
+        batch("a", 11, 3.0),
+        batch("b", 13, 4.0),
+    ];
+    let rec = Recording::from_batches(lagged.clone(), batches.clone()).unwrap();
+    assert_eq!(
+        rec.frame_ids(),
+        vec![10, 11],
+        "b's 12 and 13 are frames 10 and 11"
+    );
+    assert!(rec.frames.iter().all(Frame::is_complete));
+    assert_eq!(rec.frames[0].views[1].as_ref().unwrap()[0].bbox[0], 2.0);
+
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("rec.jsonl");
+    write_recording(&path, &rec).unwrap();
+    let text = std::fs::read_to_string(&path).unwrap();
+    assert!(
+        text.contains(r#""offset":2"#),
+        "the header keeps the offset:\n{text}"
+    );
+    assert!(
+        text.contains(r#""camera":"b","frame_id":12"#),
+        "b's own ids:\n{text}"
+    );
+    let back = read_recording(&path).unwrap();
+    assert_eq!(back, rec);
+    let mut again: Vec<Batch> = back.batches().collect();
+    again.sort_by_key(|b| (b.frame_id, b.camera.clone()));
+    let mut sent = batches;
+    sent.sort_by_key(|b| (b.frame_id, b.camera.clone()));
+    assert_eq!(again, sent, "batches() gives each camera's own ids");
+
+    // An offset that would put a batch before frame 0 is an error, not a wrapped id.
+    lagged.cameras[1].offset = 20;
+    let err = Recording::from_batches(lagged, vec![batch("b", 3, 1.0)]).unwrap_err();
+    assert!(err.to_string().contains("clock offset"), "{err}");
 }
 
 #[test]
@@ -396,6 +450,7 @@ fn missing_file_is_io_error() {
 fn duplicates_are_found_with_more_than_64_cameras() {
     let cameras: Vec<CameraSpec> = (0..70)
         .map(|i| CameraSpec {
+            offset: 0,
             name: format!("c{i}"),
             width: 10,
             height: 10,

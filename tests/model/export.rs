@@ -16,6 +16,7 @@ fn metadata(n: usize) -> ModelMetadata {
     ModelMetadata::new(
         (0..n)
             .map(|i| CameraSpec {
+                offset: 0,
                 name: format!("cam{i}"),
                 width: 1920,
                 height: 1080,

@@ -5,6 +5,7 @@
 mod auth_and_origin;
 mod bad_input;
 mod careless;
+mod clock_offsets;
 mod connections;
 mod curl;
 mod frame_cost;

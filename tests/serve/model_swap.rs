@@ -194,11 +194,13 @@ async fn corrupt_and_foreign_models_are_refused_and_the_old_one_keeps_serving() 
     // A valid model for other cameras.
     let other = vec![
         CameraSpec {
+            offset: 0,
             name: "left".into(),
             width: 640,
             height: 480,
         },
         CameraSpec {
+            offset: 0,
             name: "right".into(),
             width: 640,
             height: 480,

@@ -139,7 +139,13 @@ async fn scene_cameras(server: &TestServer, key: Option<&str>) -> Vec<(String, u
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_viewer_draws_the_live_frames_of_the_real_server() {
-    let server = start_with(demo_model(), patient).await;
+    let server = start_with(demo_model(), |c| {
+        patient(c);
+        // A clock estimate within the test's few seconds of frames.
+        c.limits.clock_watch.window = 40;
+        c.limits.clock_watch.interval = Duration::ZERO;
+    })
+    .await;
     // The page and its assets, with their security headers.
     for (path, kind) in [
         ("/", "text/html"),
@@ -189,6 +195,20 @@ async fn the_viewer_draws_the_live_frames_of_the_real_server() {
             "[...document.querySelectorAll('.panel')].every((p) => +p.dataset.frames >= 5)",
         )
         .await;
+    // Each camera's live clock estimate shows next to its name (while frames still arrive).
+    let clocks = browser
+        .wait_for(
+            "the clock estimate in every panel",
+            "(() => { const ps = [...document.querySelectorAll('.panel')]; \
+               return ps.every((p) => p.dataset.clock !== 'none') && \
+                 ps.map((p) => [p.dataset.clock, p.querySelector('.clock').textContent]); })()",
+        )
+        .await;
+    for c in clocks.as_array().unwrap() {
+        let state = c[0].as_str().unwrap();
+        assert!(["unknown", "in-sync", "off"].contains(&state), "{clocks}");
+        assert!(c[1].as_str().unwrap().starts_with("clock"), "{clocks}");
+    }
     if let Some(path) = std::env::var_os("CROSSVIEW_VIEWER_SCREENSHOT") {
         // A few seconds of frames, so the rate has a full window.
         browser

@@ -162,6 +162,7 @@ pub fn scene_to_pb(s: types::SceneDescription) -> pb::Scene {
                 name: c.name,
                 width: c.width,
                 height: c.height,
+                offset: c.offset,
             })
             .collect(),
         threshold: s.threshold,
@@ -169,6 +170,28 @@ pub fn scene_to_pb(s: types::SceneDescription) -> pb::Scene {
         model_version: s.model_version.unwrap_or_default(),
         appearance_length: s.appearance_length.unwrap_or(0) as u32,
         sync_timeout_ms: s.sync_timeout_ms,
+        clock: s.clock.map(clock_to_pb),
+    }
+}
+
+/// Live clock estimate → protobuf.
+pub fn clock_to_pb(c: types::ClockEstimate) -> pb::ClockEstimate {
+    pb::ClockEstimate {
+        frames: u32::try_from(c.frames).unwrap_or(u32::MAX),
+        as_of_frame: c.as_of_frame,
+        step: c.step,
+        reference: c.reference,
+        cameras: c
+            .cameras
+            .into_iter()
+            .map(|c| pb::CameraClock {
+                camera: c.camera,
+                known: c.offset_frames.is_some(),
+                offset_frames: c.offset_frames.unwrap_or(0.0),
+                offset_ids: c.offset_ids.unwrap_or(0),
+                confidence: c.confidence,
+            })
+            .collect(),
     }
 }
 
@@ -221,6 +244,7 @@ mod tests {
     #[test]
     fn a_frame_with_boxes_is_the_result_plus_the_reporting_cameras_boxes() {
         let cam = |name: &str| CameraSpec {
+            offset: 0,
             name: name.into(),
             width: 640,
             height: 480,

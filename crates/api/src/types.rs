@@ -130,6 +130,42 @@ pub struct SceneDescription {
     /// unknown.
     pub appearance_length: Option<usize>,
     pub sync_timeout_ms: u64,
+    /// The live clock watch's latest estimate of each camera's clock offset; absent while the
+    /// watch is off or has not yet seen enough frames.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub clock: Option<ClockEstimate>,
+}
+
+/// The server's live estimate of each camera's clock offset (`crossview serve
+/// --clock-watch-window`), measured on the frames as the server groups them: after the
+/// offsets declared in the scene (`@±N`), so a camera in sync, or one whose declared offset
+/// is right, shows 0.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ClockEstimate {
+    /// Frames the estimate was computed from (the most recent ones).
+    pub frames: usize,
+    /// Newest frame id among them.
+    pub as_of_frame: u64,
+    /// Frame step of their ids (offsets in ids are multiples of it).
+    pub step: i64,
+    /// Camera the offsets are relative to (the one at the median offset).
+    pub reference: String,
+    /// One entry per camera, in scene order.
+    pub cameras: Vec<CameraClock>,
+}
+
+/// One camera's live clock offset.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CameraClock {
+    /// Camera name.
+    pub camera: String,
+    /// Offset in frame intervals (sub-frame: `+1.0` is one frame late), `None` when unknown:
+    /// no confident overlap with another camera, or nobody moved.
+    pub offset_frames: Option<f32>,
+    /// Offset in frame ids, rounded to the frame step: what `@±N` would correct.
+    pub offset_ids: Option<i64>,
+    /// Confidence in `[0, 1]` (0 when unknown).
+    pub confidence: f32,
 }
 
 /// The query of `GET /v1/scenes/{scene}/events`. Unknown parameters are ignored.

@@ -339,6 +339,7 @@ mod tests {
             name: "test".into(),
             cameras: (0..n)
                 .map(|i| CameraSpec {
+                    offset: 0,
                     name: format!("cam{i}"),
                     width: 100,
                     height: 100,

@@ -13,6 +13,7 @@ mod error;
 pub mod identity;
 pub(crate) mod lsa;
 pub mod matching;
+pub mod offsets;
 #[cfg(any(test, feature = "testing"))]
 pub mod testing;
 pub mod tracking;

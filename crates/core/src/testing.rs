@@ -29,6 +29,7 @@ impl Encoder for BottomCentre {
 pub fn cameras(n: usize, width: u32, height: u32) -> Vec<CameraSpec> {
     (0..n)
         .map(|i| CameraSpec {
+            offset: 0,
             name: format!("c{i}"),
             width,
             height,

@@ -4,12 +4,21 @@ use serde::{Deserialize, Serialize};
 
 use crate::{Error, Result};
 
-/// One camera of a scene: its name and image size in pixels.
+/// One camera of a scene: its name, image size in pixels and clock offset.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct CameraSpec {
     pub name: String,
     pub width: u32,
     pub height: u32,
+    /// Clock offset in frame ids (`crossview sync-check` measures it): the camera's frame id
+    /// `N` shows what the others show in frame `N − offset`, so its batches are grouped into
+    /// that frame. 0 (the default, left out of JSON) for a camera in sync.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub offset: i64,
+}
+
+fn is_zero(v: &i64) -> bool {
+    *v == 0
 }
 
 impl CameraSpec {
@@ -17,6 +26,30 @@ impl CameraSpec {
     pub const MAX_NAME_BYTES: usize = 128;
     /// Largest image width or height in pixels.
     pub const MAX_SIDE: u32 = 100_000;
+    /// Largest clock offset either way, in frame ids.
+    pub const MAX_OFFSET: i64 = 1_000_000;
+
+    /// A camera in sync (offset 0).
+    pub fn new(name: impl Into<String>, width: u32, height: u32) -> Self {
+        CameraSpec {
+            name: name.into(),
+            width,
+            height,
+            offset: 0,
+        }
+    }
+
+    /// Same name and image size (the clock offset aside): what a model must agree on with
+    /// the scene it serves.
+    pub fn same_camera(&self, other: &CameraSpec) -> bool {
+        self.name == other.name && self.width == other.width && self.height == other.height
+    }
+
+    /// The frame this camera's frame id `frame_id` belongs to (`frame_id − offset`), or `None`
+    /// when that falls outside `0..=u64::MAX`.
+    pub fn frame_of(&self, frame_id: u64) -> Option<u64> {
+        frame_id.checked_add_signed(self.offset.checked_neg()?)
+    }
 
     /// The one rule for a camera wherever it is declared (`--scene`, a recording header, a
     /// model file): a name of 1..=[`Self::MAX_NAME_BYTES`] bytes without control characters,
@@ -46,6 +79,13 @@ impl CameraSpec {
                     Self::MAX_SIDE
                 ));
             }
+        }
+        if self.offset.unsigned_abs() > Self::MAX_OFFSET.unsigned_abs() {
+            return Err(format!(
+                "camera '{shown}' has offset {}; it must be within ±{}",
+                self.offset,
+                Self::MAX_OFFSET
+            ));
         }
         Ok(())
     }

@@ -551,14 +551,21 @@ pub fn read_recordings(paths: &[impl AsRef<Path>], strict: bool) -> Result<(Reco
             let batch = batch?;
             let cam = scene.camera_index(&batch.camera)?;
             let frame_id = batch.frame_id;
-            if !assembler.insert(cam, frame_id, batch.detections) {
+            let inserted = assembler.insert(cam, frame_id, batch.detections);
+            if inserted != Inserted::Added {
                 // A duplicate across files (the reader finds those within one file).
                 let e = reader.format_err(
                     reader.line(),
-                    format!(
-                        "duplicate batch: camera '{}' already reported frame {frame_id} in an earlier file",
-                        batch.camera
-                    ),
+                    match inserted {
+                        Inserted::OutOfRange => format!(
+                            "camera '{}' frame {frame_id} less the camera's clock offset is out of range",
+                            batch.camera
+                        ),
+                        _ => format!(
+                            "duplicate batch: camera '{}' already reported frame {frame_id} in an earlier file",
+                            batch.camera
+                        ),
+                    },
                 );
                 if strict {
                     return Err(e);
@@ -603,32 +610,46 @@ pub fn read_recordings(paths: &[impl AsRef<Path>], strict: bool) -> Result<(Reco
     ))
 }
 
-/// Collects batches into frames keyed (and so sorted) by frame id.
+/// Collects batches into frames keyed (and so sorted) by frame id: a camera's batch `N`
+/// goes to frame `N − offset` (its clock offset, [`CameraSpec::frame_of`]).
 struct FrameAssembler {
-    num_cameras: usize,
+    cameras: Vec<CameraSpec>,
     frames: BTreeMap<u64, Frame>,
+}
+
+/// What [`FrameAssembler::insert`] made of a batch.
+#[derive(Debug, PartialEq, Eq)]
+enum Inserted {
+    Added,
+    /// The camera had already reported the frame.
+    Duplicate,
+    /// The frame id less the camera's offset falls outside `0..=u64::MAX`.
+    OutOfRange,
 }
 
 impl FrameAssembler {
     fn new(scene: &SceneSpec) -> Self {
         FrameAssembler {
-            num_cameras: scene.cameras.len(),
+            cameras: scene.cameras.clone(),
             frames: BTreeMap::new(),
         }
     }
 
-    /// Stores camera `cam`'s detections; returns false if it had already reported the frame.
-    fn insert(&mut self, cam: usize, frame_id: u64, detections: Vec<Detection>) -> bool {
-        let n = self.num_cameras;
+    /// Stores camera `cam`'s detections of its frame id `frame_id`.
+    fn insert(&mut self, cam: usize, frame_id: u64, detections: Vec<Detection>) -> Inserted {
+        let n = self.cameras.len();
+        let Some(frame_id) = self.cameras[cam].frame_of(frame_id) else {
+            return Inserted::OutOfRange;
+        };
         let frame = self
             .frames
             .entry(frame_id)
             .or_insert_with(|| Frame::new(frame_id, n));
         if frame.views[cam].is_some() {
-            return false;
+            return Inserted::Duplicate;
         }
         frame.views[cam] = Some(detections);
-        true
+        Inserted::Added
     }
 
     fn finish(self) -> Vec<Frame> {
@@ -663,12 +684,21 @@ impl Recording {
                         other => other,
                     })?;
             }
-            if !assembler.insert(cam, batch.frame_id, batch.detections) {
-                return Err(Error::DuplicateBatch {
-                    scene: scene.name.clone(),
-                    camera: batch.camera,
-                    frame_id: batch.frame_id,
-                });
+            match assembler.insert(cam, batch.frame_id, batch.detections) {
+                Inserted::Added => {}
+                Inserted::Duplicate => {
+                    return Err(Error::DuplicateBatch {
+                        scene: scene.name.clone(),
+                        camera: batch.camera,
+                        frame_id: batch.frame_id,
+                    });
+                }
+                Inserted::OutOfRange => {
+                    return Err(Error::invalid(
+                        format!("{}@{}", batch.camera, batch.frame_id),
+                        "the frame id less the camera's clock offset is out of range",
+                    ));
+                }
             }
         }
         Ok(Recording {
@@ -719,10 +749,14 @@ impl Recording {
     pub fn batches(&self) -> impl Iterator<Item = Batch> + '_ {
         self.frames.iter().flat_map(move |f| {
             f.views.iter().enumerate().filter_map(move |(c, v)| {
-                v.as_ref().map(|dets| Batch {
-                    camera: self.scene.cameras[c].name.clone(),
-                    frame_id: f.frame_id,
-                    detections: dets.clone(),
+                v.as_ref().map(|dets| {
+                    let cam = &self.scene.cameras[c];
+                    Batch {
+                        camera: cam.name.clone(),
+                        // The camera's own id: the frame's plus its clock offset.
+                        frame_id: f.frame_id.saturating_add_signed(cam.offset),
+                        detections: dets.clone(),
+                    }
                 })
             })
         })
@@ -791,10 +825,21 @@ impl<W: Write> RecordingWriter<W> {
         }
         for (c, view) in frame.views.iter().enumerate() {
             if let Some(dets) = view {
-                let camera = self.scene.cameras[c].name.clone();
+                let cam = &self.scene.cameras[c];
+                let camera = cam.name.clone();
+                // The camera's own id: the frame's plus its clock offset.
+                let frame_id = frame
+                    .frame_id
+                    .checked_add_signed(cam.offset)
+                    .ok_or_else(|| {
+                        Error::invalid(
+                            format!("frame {}", frame.frame_id),
+                            format!("plus camera '{camera}''s clock offset is out of range"),
+                        )
+                    })?;
                 self.write_json(&BatchRef {
                     camera: &camera,
-                    frame_id: frame.frame_id,
+                    frame_id,
                     detections: dets,
                 })?;
             }

@@ -37,6 +37,7 @@ pub fn scene() -> SceneSpec {
         cameras: CAMERA_NAMES
             .iter()
             .map(|name| CameraSpec {
+                offset: 0,
                 name: name.to_string(),
                 width: WIDTH,
                 height: HEIGHT,

@@ -222,11 +222,13 @@ mod tests {
     fn cams() -> Vec<CameraSpec> {
         vec![
             CameraSpec {
+                offset: 0,
                 name: "a".into(),
                 width: 1920,
                 height: 1080,
             },
             CameraSpec {
+                offset: 0,
                 name: "b".into(),
                 width: 640,
                 height: 480,

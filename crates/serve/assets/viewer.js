@@ -8,12 +8,14 @@
 // For tests and scripts the page mirrors what it did in data-* attributes: <body data-state>
 // (loading | need-token | connecting | live | error), #status[data-frames] (frame events
 // received), and per camera panel data-frames (frames drawn), data-last-frame,
-// data-boxes-drawn, data-matched (boxes in a multi-camera identity), data-unmatched.
+// data-boxes-drawn, data-matched (boxes in a multi-camera identity), data-unmatched, and
+// data-clock / data-clock-offset (the server's live clock estimate, polled every 5 s).
 'use strict';
 
 (() => {
   const TOKEN_KEY = 'crossview.apiKey';
   const RATE_WINDOW_MS = 5000;
+  const CLOCK_POLL_MS = 5000;
   const RETRY_MS = [500, 1000, 2000, 5000];
   const MAX_CANVAS_SIDE = 1280;
   const MAX_BUFFER_CHARS = 64 << 20;
@@ -152,6 +154,7 @@
     $('panels').style.setProperty('--cols', String(cols));
     $('panels').style.setProperty('--rows', String(Math.max(1, Math.ceil(cams.length / cols))));
     $('panels').replaceChildren(...view.panels.map((p) => p.el));
+    showClock(info);
     connect(view.generation);
   }
 
@@ -285,12 +288,16 @@
     const title = document.createElement('strong');
     title.textContent = String(cam.name);
     const size = document.createElement('span');
-    size.textContent = w + '×' + h;
+    const declared = Number(cam.offset) || 0;
+    size.textContent = w + '×' + h + (declared ? ' @' + (declared > 0 ? '+' : '') + declared : '');
+    const clock = document.createElement('span');
+    clock.className = 'clock';
+    el.dataset.clock = 'none';
     const counts = document.createElement('span');
     counts.className = 'counts';
-    caption.append(title, size, counts);
+    caption.append(title, size, clock, counts);
     el.append(canvas, caption);
-    const panel = { el, canvas, counts, index: c, w, h, scale };
+    const panel = { el, canvas, counts, clock, index: c, w, h, scale };
     clearPanel(panel, 'waiting for frames');
     return panel;
   }
@@ -403,6 +410,43 @@
     else $('frame-error').hidden = true;
   }
 
+  // ---- clock offsets ----------------------------------------------------------------------
+
+  // Each camera's live clock offset (the scene description's `clock`), next to its name:
+  // data-clock is 'none' (no estimate yet), 'unknown', 'in-sync' or 'off', data-clock-offset
+  // the offset in frames.
+  function showClock(info) {
+    const cams = info && info.clock && Array.isArray(info.clock.cameras) ? info.clock.cameras : [];
+    for (const p of view.panels) {
+      const c = cams.find((x) => x && x.camera === p.el.dataset.camera);
+      if (!c) continue;
+      const f = c.offset_frames;
+      if (typeof f !== 'number' || !Number.isFinite(f)) {
+        p.el.dataset.clock = 'unknown';
+        p.clock.textContent = 'clock: unknown';
+        p.clock.title = 'no confident overlap with another camera, or nobody moved';
+        continue;
+      }
+      const off = Math.abs(f) > 0.5;
+      p.el.dataset.clock = off ? 'off' : 'in-sync';
+      p.el.dataset.clockOffset = f.toFixed(2);
+      p.clock.textContent = off ? 'clock ' + (f > 0 ? '+' : '') + f.toFixed(1) + ' frames' : 'clock in sync';
+      p.clock.title = 'estimated from the last ' + info.clock.frames + ' frames, confidence ' +
+        (Number(c.confidence) || 0).toFixed(2);
+    }
+  }
+
+  async function pollClock() {
+    if (!view.scene) return;
+    const generation = view.generation;
+    try {
+      const info = await (await api('/v1/scenes/' + encodeURIComponent(view.scene.name))).json();
+      if (generation === view.generation) showClock(info);
+    } catch (e) {
+      // The event stream reports connection and key problems; a missed poll is retried.
+    }
+  }
+
   function showError(text) {
     $('frame-error').textContent = text;
     $('frame-error').hidden = false;
@@ -434,6 +478,7 @@
       }
     });
     setInterval(showRate, 1000);
+    setInterval(pollClock, CLOCK_POLL_MS);
     start();
   }
 

@@ -113,17 +113,33 @@ impl SceneDecl {
 /// Longest scene header `--scene FILE` reads (a header of many cameras is a few KiB).
 const MAX_HEADER_BYTES: u64 = 1 << 20;
 
-/// `name:WIDTHxHEIGHT`.
+/// `name:WIDTHxHEIGHT`, optionally followed by the camera's clock offset in frame ids,
+/// `@+N` or `@-N` (what `crossview sync-check` reports).
 fn parse_camera(s: &str) -> Result<CameraSpec> {
-    let bad = || Error::invalid("--scene", format!("'{s}' is not CAMERA:WIDTHxHEIGHT"));
-    let (name, size) = s.rsplit_once(':').ok_or_else(bad)?;
+    let bad = || {
+        Error::invalid(
+            "--scene",
+            format!("'{s}' is not CAMERA:WIDTHxHEIGHT or CAMERA:WIDTHxHEIGHT@OFFSET"),
+        )
+    };
+    let (body, offset) = match s.rsplit_once('@') {
+        Some((body, o)) if !o.contains(':') => {
+            let o: i64 = o
+                .strip_prefix('+')
+                .unwrap_or(o)
+                .parse()
+                .map_err(|_| bad())?;
+            (body, o)
+        }
+        _ => (s, 0),
+    };
+    let (name, size) = body.rsplit_once(':').ok_or_else(bad)?;
     let (w, h) = size.split_once('x').ok_or_else(bad)?;
     let (width, height): (u32, u32) =
         (w.parse().map_err(|_| bad())?, h.parse().map_err(|_| bad())?);
     let camera = CameraSpec {
-        name: name.to_string(),
-        width,
-        height,
+        offset,
+        ..CameraSpec::new(name, width, height)
     };
     camera.check().map_err(|e| Error::invalid("--scene", e))?;
     Ok(camera)
@@ -179,6 +195,9 @@ pub struct Limits {
     /// A JSON Lines body stops early once more than this many lines were rejected and
     /// rejected lines outnumber accepted ones.
     pub max_rejected_lines: usize,
+    /// The live clock watch's window, interval and search range ([`crate::scene`]): bounds
+    /// its work to one estimate per interval.
+    pub clock_watch: crate::scene::ClockWatchConfig,
 }
 
 impl Default for Limits {
@@ -194,6 +213,7 @@ impl Default for Limits {
             frame_deadline: Duration::from_secs(2),
             frame_window: super::sync::DEFAULT_FRAME_WINDOW,
             max_rejected_lines: 100,
+            clock_watch: crate::scene::ClockWatchConfig::default(),
         }
     }
 }
@@ -341,6 +361,18 @@ mod tests {
         assert_eq!(d.spec.name, "lab");
         assert_eq!(d.spec.cameras.len(), 2);
         assert!(SceneDecl::parse("lab=a:640x480,a:640x480").is_err());
+        // Clock offsets: `@+N`, `@-N`, `@N`; a name may hold an '@'.
+        let d = SceneDecl::parse("lab=a:640x480@+2,b:640x480@-5,c:640x480@3,d@x:8x6").unwrap();
+        let offsets: Vec<i64> = d.spec.cameras.iter().map(|c| c.offset).collect();
+        assert_eq!(offsets, [2, -5, 3, 0]);
+        assert_eq!(d.spec.cameras[3].name, "d@x");
+        for bad in [
+            "lab=a:640x480@",
+            "lab=a:640x480@+x",
+            "lab=a:640x480@99999999999",
+        ] {
+            assert!(SceneDecl::parse(bad).is_err(), "{bad}");
+        }
         let dir = tempfile::tempdir().unwrap();
         let rec = dir.path().join("rec.jsonl");
         let header =

@@ -281,6 +281,36 @@ impl Metrics {
         self.observe("crossview_frame_latency_seconds", &[("scene", scene)], d);
     }
 
+    /// A camera's live clock offset in frame intervals (NaN while unknown) and its confidence.
+    pub(crate) fn camera_offset(
+        &self,
+        scene: &str,
+        camera: &str,
+        frames: Option<f32>,
+        confidence: f32,
+    ) {
+        let labels = [("scene", scene), ("camera", camera)];
+        self.recorder
+            .register_gauge(&key("crossview_camera_offset_frames", &labels), &META)
+            .set(frames.map_or(f64::NAN, f64::from));
+        self.recorder
+            .register_gauge(&key("crossview_camera_offset_confidence", &labels), &META)
+            .set(f64::from(confidence));
+    }
+
+    /// `--auto-align` changed a camera's clock offset.
+    pub(crate) fn clock_aligned(&self, scene: &str, camera: &str) {
+        self.inc(
+            "crossview_clock_alignments_total",
+            &[("scene", scene), ("camera", camera)],
+        );
+    }
+
+    /// Time one live clock estimate took (its sum over uptime is the watch's CPU share).
+    pub(crate) fn clock_estimate(&self, scene: &str, d: Duration) {
+        self.observe("crossview_clock_estimate_seconds", &[("scene", scene)], d);
+    }
+
     /// Time spent in the encoder and matcher for one frame.
     pub fn inference(&self, scene: &str, d: Duration) {
         self.observe("crossview_inference_seconds", &[("scene", scene)], d);

@@ -39,16 +39,19 @@ pub const CAMERAS: [&str; 3] = ["c0", "c1", "c2"];
 pub fn cameras() -> Vec<CameraSpec> {
     vec![
         CameraSpec {
+            offset: 0,
             name: "c0".into(),
             width: 1920,
             height: 1080,
         },
         CameraSpec {
+            offset: 0,
             name: "c1".into(),
             width: 1280,
             height: 720,
         },
         CameraSpec {
+            offset: 0,
             name: "c2".into(),
             width: 640,
             height: 480,

@@ -221,6 +221,7 @@ mod tests {
     #[test]
     fn restrict_drops_unkept_boxes_and_keeps_their_labels_aligned() {
         let cam = |name: &str| CameraSpec {
+            offset: 0,
             name: name.into(),
             width: 100,
             height: 100,

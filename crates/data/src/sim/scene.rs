@@ -168,6 +168,7 @@ impl SceneConfig {
                 .cameras
                 .iter()
                 .map(|c| crossview_core::CameraSpec {
+                    offset: 0,
                     name: c.name.clone(),
                     width: c.width,
                     height: c.height,

@@ -24,7 +24,7 @@ use std::time::{Duration, Instant};
 
 use tokio::sync::{Notify, broadcast, oneshot};
 
-use crossview_api::types::{FrameResult, SceneDescription};
+use crossview_api::types::{ClockEstimate, FrameResult, SceneDescription};
 use crossview_core::association::AssociationConfig;
 use crossview_core::tracking::{Tracker, TrackerConfig};
 use crossview_core::{Detection, Encoder, Error, Frame, Result, SceneSpec};
@@ -35,10 +35,12 @@ use crate::record::SceneRecorder;
 use crate::sync::{Rejection, Synchronizer};
 
 mod admission;
+mod clock;
 mod published;
 mod validate;
 mod worker;
 
+pub use clock::ClockWatchConfig;
 pub use published::Published;
 
 pub(crate) use worker::Model;
@@ -86,6 +88,10 @@ pub struct Scene {
     worker: Mutex<Option<std::thread::JoinHandle<()>>>,
     /// Where accepted batches are recorded (`--record`), if anywhere.
     recorder: Option<SceneRecorder>,
+    /// The live clock watch's latest estimate ([`clock`]).
+    clock: Arc<Mutex<Option<ClockEstimate>>>,
+    /// Each camera's clock offset as applied now (declared, or changed by `--auto-align`).
+    offsets: clock::Offsets,
 }
 
 impl std::fmt::Debug for Scene {
@@ -139,6 +145,12 @@ impl Scene {
         let queued = Arc::new(AtomicUsize::new(0));
         let close_by = Arc::new(Mutex::new(None));
         let published = Arc::new(AtomicU64::new(0));
+        let clock = Arc::new(Mutex::new(None));
+        let offsets: clock::Offsets = spec
+            .cameras
+            .iter()
+            .map(|c| std::sync::atomic::AtomicI64::new(c.offset))
+            .collect();
         let worker = Worker {
             spec: spec.clone(),
             model,
@@ -150,6 +162,13 @@ impl Scene {
             close_by: close_by.clone(),
             published: published.clone(),
             tracker: tracker.map(Tracker::new),
+            clock: clock::ClockWatch::start(
+                &spec,
+                limits.clock_watch,
+                metrics.clone(),
+                clock.clone(),
+                offsets.clone(),
+            ),
         };
         let handle = std::thread::Builder::new()
             .name(format!("encoder-{}", spec.name))
@@ -176,6 +195,8 @@ impl Scene {
             wake: Notify::new(),
             worker: Mutex::new(Some(handle)),
             recorder,
+            clock,
+            offsets,
         }))
     }
 
@@ -229,12 +250,13 @@ impl Scene {
             .unwrap_or_default();
         SceneDescription {
             name: self.spec.name.clone(),
-            cameras: self.spec.cameras.clone(),
+            cameras: self.cameras(),
             threshold: association.threshold,
             alpha: association.alpha,
             model_version: serving.map(|i| i.version),
             appearance_length: (app > 0).then_some(app),
             sync_timeout_ms: self.sync_timeout.as_millis() as u64,
+            clock: lock(&self.clock).clone(),
         }
     }
 
@@ -247,12 +269,14 @@ impl Scene {
         // The recorder's copy, taken before the lock (the synchronizer takes the original).
         let recorded = self.recorder.as_ref().map(|_| detections.clone());
         let mut intake = lock(&self.intake);
+        // The frame the batch belongs to: its id less the camera's clock offset.
+        let frame = self.frame_of(cam, frame_id)?;
         // Shed before accepting anything. One batch can release several frames at once, so the
         // queue may overshoot the capacity by at most `max_pending_frames`: still bounded.
         self.admit(1)?;
         // Under the intake lock: no other batch can fix the length or grow the frame meanwhile.
         self.check_appearance("detections", app_len)?;
-        if let Some(f) = intake.sync.pending_frame(frame_id)
+        if let Some(f) = intake.sync.pending_frame(frame)
             && f.views[cam].is_none()
         {
             let mut counts: Vec<usize> = f
@@ -261,9 +285,9 @@ impl Scene {
                 .map(|v| v.as_ref().map_or(0, Vec::len))
                 .collect();
             counts[cam] = n_boxes;
-            self.check_cost("detections", frame_id, &counts)?;
+            self.check_cost("detections", frame, &counts)?;
         }
-        let emitted = match intake.sync.push(cam, frame_id, detections, Instant::now()) {
+        let emitted = match intake.sync.push(cam, frame, detections, Instant::now()) {
             Ok(e) => e,
             Err(r) => return Err(self.rejected(&intake, r, camera, frame_id)),
         };
@@ -283,6 +307,31 @@ impl Scene {
         // The earliest deadline may have changed.
         self.wake.notify_one();
         Ok(())
+    }
+
+    /// The cameras with the clock offsets applied now.
+    pub fn cameras(&self) -> Vec<crossview_core::CameraSpec> {
+        let mut cameras = self.spec.cameras.clone();
+        for (c, o) in cameras.iter_mut().zip(self.offsets.iter()) {
+            c.offset = o.load(Ordering::Acquire);
+        }
+        cameras
+    }
+
+    /// The frame camera `cam`'s batch `frame_id` belongs to: `frame_id` less the camera's
+    /// clock offset (its `@±N` in the scene declaration, or what `--auto-align` set).
+    fn frame_of(&self, cam: usize, frame_id: u64) -> Result<u64> {
+        let offset = self.offsets[cam].load(Ordering::Acquire);
+        frame_id.checked_add_signed(-offset).ok_or_else(|| {
+            Error::invalid(
+                "frame_id",
+                format!(
+                    "frame id {frame_id} of camera '{}' less its clock offset {offset} falls \
+                     outside 0..=2^64-1",
+                    self.spec.cameras[cam].name
+                ),
+            )
+        })
     }
 
     /// The error for a batch the synchronizer refused, counted by rejection kind.

@@ -64,6 +64,8 @@ pub(super) struct Worker {
     /// Track ids for the synchronized frames, in frame order (unary frames are not tracked;
     /// `None`: tracking is off).
     pub(super) tracker: Option<Tracker>,
+    /// The live clock watch (`None`: off).
+    pub(super) clock: Option<super::clock::ClockWatch>,
 }
 
 impl Worker {
@@ -120,6 +122,9 @@ impl Worker {
         if let Some(t) = &mut self.tracker {
             t.end_tracks();
         }
+        if let Some(c) = &mut self.clock {
+            c.reset();
+        }
     }
 
     /// The published result of a synchronized frame: its identities with their track ids, or
@@ -133,6 +138,9 @@ impl Worker {
         }
         match self.associate_in_time(frame, first_seen) {
             Ok((ids, embeddings)) => {
+                if let Some(c) = &mut self.clock {
+                    c.observe(frame.frame_id, &embeddings);
+                }
                 let tracks = match &mut self.tracker {
                     Some(tracker) => tracker
                         .update(frame, &ids, &embeddings)

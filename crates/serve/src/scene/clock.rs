@@ -1,0 +1,327 @@
+//! The live clock watch: each camera's clock offset, estimated from the embeddings the worker
+//! computed anyway ([`crossview_core::offsets`]), off the hot path.
+//!
+//! The worker hands every associated frame's embeddings to [`ClockWatch::observe`], which
+//! copies them into a shared window of the last `window` frames per camera (a few kilobytes
+//! per frame, under a short lock). Once per `interval` the scene's own watch thread copies
+//! the window, if it changed, and estimates every camera's offset from it: the worker never
+//! waits for an estimate and the work is bounded by one estimate per interval. The thread publishes the estimate in the
+//! scene description, as the `crossview_camera_offset_frames{scene,camera}` and
+//! `crossview_camera_offset_confidence` gauges, and logs a warning when a camera's offset
+//! leaves ±0.5 frame while known (and a note when it comes back).
+//!
+//! Offsets are measured on the frames as the synchronizer grouped them, after the offsets the
+//! scene declares: a correctly declared camera shows 0.
+//!
+//! With `--auto-align` the thread also corrects: when two successive estimates over full
+//! windows agree that a camera is a whole number of frames off (at least 0.75 frame, within
+//! 0.35 of the whole number), it adds that to the camera's offset ([`Offsets`]), logs and
+//! counts the change (`crossview_clock_alignments_total`) and starts a new window, so there is
+//! at most one change per window. Batches of the changed camera for frames already published
+//! are refused as late (counted, as any late batch) while it catches up.
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicI64, Ordering};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, channel};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use crossview_api::types::{CameraClock, ClockEstimate};
+use crossview_core::offsets::{CameraSeries, OffsetConfig, OffsetEstimate, estimate, frame_step};
+use crossview_core::{CameraSpec, FrameEmbeddings, SceneSpec};
+
+use super::lock;
+use crate::metrics::Metrics;
+
+/// Settings of the live clock watch.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ClockWatchConfig {
+    /// Most recent frames an estimate uses (0: the watch is off).
+    pub window: usize,
+    /// At most one estimate per this interval.
+    pub interval: Duration,
+    /// Largest offset searched, in frame steps either way (bounds the work).
+    pub max_offset: u32,
+    /// Apply a camera's estimated offset once two estimates over full, successive windows
+    /// agree on it (`--auto-align`); off by default.
+    pub auto_align: bool,
+}
+
+impl Default for ClockWatchConfig {
+    /// 300 frames (chosen on the simulator: BENCHMARKS.md, "Camera clock offsets"), one
+    /// estimate per 10 s, ±10 frames searched, no auto-align.
+    fn default() -> Self {
+        ClockWatchConfig {
+            window: 300,
+            interval: Duration::from_secs(10),
+            max_offset: 10,
+            auto_align: false,
+        }
+    }
+}
+
+/// Each camera's clock offset as the synchronizer applies it now: the declared one (`@±N`),
+/// changed by `--auto-align`.
+pub(crate) type Offsets = Arc<[AtomicI64]>;
+
+/// An `--auto-align` proposal for a camera needs its estimate this close to a whole number of
+/// steps and at least this far from 0 (hysteresis: a camera near ±0.5 frame is left alone).
+const ALIGN_ROUNDING: f32 = 0.35;
+const ALIGN_FRAMES: f32 = 0.75;
+
+/// A camera whose offset is known (confident pairs link it to the reference) and beyond this
+/// many frames is logged as out of sync.
+const WARN_FRAMES: f32 = 0.5;
+
+/// Poll period of the watch thread when the interval is shorter.
+const MIN_POLL: Duration = Duration::from_millis(50);
+
+/// The rolling window the worker fills and the watch thread copies.
+#[derive(Default)]
+struct Window {
+    series: Vec<CameraSeries>,
+    /// Frame ids held, oldest first.
+    ids: VecDeque<i64>,
+    /// Newest frame id seen.
+    as_of: u64,
+    /// Bumped on every change (the thread skips an unchanged window).
+    version: u64,
+}
+
+impl Window {
+    fn clear(&mut self) {
+        self.series
+            .iter_mut()
+            .for_each(|s| *s = CameraSeries::new());
+        self.ids.clear();
+        self.version += 1;
+    }
+}
+
+/// The worker's side of the watch: fills the shared window; dropping it stops the thread.
+pub(super) struct ClockWatch {
+    capacity: usize,
+    window: Arc<Mutex<Window>>,
+    _stop: Sender<()>,
+}
+
+impl ClockWatch {
+    /// Starts the watch thread of scene `spec`; it writes each estimate into `state`. `None`
+    /// when the watch is off (window 0) or its thread could not start (logged).
+    pub(super) fn start(
+        spec: &SceneSpec,
+        config: ClockWatchConfig,
+        metrics: Metrics,
+        state: Arc<Mutex<Option<ClockEstimate>>>,
+        offsets: Offsets,
+    ) -> Option<Self> {
+        if config.window == 0 {
+            return None;
+        }
+        let window = Arc::new(Mutex::new(Window {
+            series: vec![CameraSeries::new(); spec.cameras.len()],
+            ..Window::default()
+        }));
+        let (stop, stopped) = channel();
+        let watched = spec.clone();
+        let shared = window.clone();
+        let spawned = std::thread::Builder::new()
+            .name(format!("clock-{}", spec.name))
+            .spawn(move || {
+                let shared = Shared {
+                    metrics,
+                    window: shared,
+                    state,
+                    offsets,
+                };
+                watch(&watched, config, &shared, &stopped);
+            });
+        if let Err(e) = spawned {
+            tracing::error!(scene = %spec.name, error = %e, "clock watch not started");
+            return None;
+        }
+        Some(ClockWatch {
+            capacity: config.window,
+            window,
+            _stop: stop,
+        })
+    }
+
+    /// Adds frame `frame_id`'s embeddings to the window (a copy under a short lock: the
+    /// estimate runs on the watch thread, never here).
+    pub(super) fn observe(&mut self, frame_id: u64, embeddings: &FrameEmbeddings) {
+        let Ok(id) = i64::try_from(frame_id) else {
+            return;
+        };
+        let mut w = lock(&self.window);
+        if w.ids.back().is_some_and(|&last| id <= last) {
+            return; // Not newer than the window (a restarted stream): keep it ordered.
+        }
+        for (c, series) in w.series.iter_mut().enumerate() {
+            if let Some(view) = embeddings.view(c) {
+                series.insert(id, view.to_owned());
+            }
+        }
+        w.ids.push_back(id);
+        if w.ids.len() > self.capacity {
+            w.ids.pop_front();
+            if let Some(&oldest) = w.ids.front() {
+                w.series.iter_mut().for_each(|s| s.retain_from(oldest));
+            }
+        }
+        w.as_of = frame_id;
+        w.version += 1;
+    }
+
+    /// Forgets the window (a new model's embeddings are not comparable with the old one's).
+    pub(super) fn reset(&mut self) {
+        lock(&self.window).clear();
+    }
+}
+
+/// What the watch thread shares with the scene.
+struct Shared {
+    metrics: Metrics,
+    window: Arc<Mutex<Window>>,
+    state: Arc<Mutex<Option<ClockEstimate>>>,
+    offsets: Offsets,
+}
+
+/// The watch thread: once per interval, an estimate of the window if it changed and holds
+/// enough frames, until the worker drops its [`ClockWatch`].
+fn watch(spec: &SceneSpec, config: ClockWatchConfig, shared: &Shared, stopped: &Receiver<()>) {
+    let offsets = OffsetConfig {
+        max_offset: config.max_offset,
+        ..OffsetConfig::default()
+    };
+    let enough = (config.window / 2).max(offsets.min_frames);
+    let mut flagged = vec![false; spec.cameras.len()];
+    let mut proposed: Option<Vec<i64>> = None;
+    let mut seen = 0;
+    while let Err(RecvTimeoutError::Timeout) = stopped.recv_timeout(config.interval.max(MIN_POLL)) {
+        let (series, frames, as_of) = {
+            let w = lock(&shared.window);
+            if w.version == seen || w.ids.len() < enough {
+                continue;
+            }
+            seen = w.version;
+            (w.series.clone(), w.ids.len(), w.as_of)
+        };
+        let t = Instant::now();
+        let step = frame_step(series.iter().flat_map(CameraSeries::frame_ids));
+        let found = estimate(&series, step, None, &offsets);
+        shared.metrics.clock_estimate(&spec.name, t.elapsed());
+        let report = describe(spec, &found, frames, as_of);
+        report_changes(spec, &report, &shared.metrics, &mut flagged);
+        if config.auto_align && frames >= config.window {
+            let now = proposal(&report);
+            if now.iter().any(|&k| k != 0) && proposed.as_ref() == Some(&now) {
+                align(spec, shared, &now);
+                proposed = None;
+            } else {
+                proposed = Some(now);
+            }
+        }
+        *lock(&shared.state) = Some(report);
+    }
+}
+
+/// Per camera, the correction `--auto-align` would apply (in frame ids; 0: none).
+fn proposal(report: &ClockEstimate) -> Vec<i64> {
+    let step = report.step as f32;
+    report
+        .cameras
+        .iter()
+        .map(|c| match (c.offset_frames, c.offset_ids) {
+            (Some(f), Some(ids))
+                if f.abs() >= ALIGN_FRAMES && (f - ids as f32 / step).abs() <= ALIGN_ROUNDING =>
+            {
+                ids
+            }
+            _ => 0,
+        })
+        .collect()
+}
+
+/// Applies `corrections` to the scene's offsets, logs and counts each, and starts a new window
+/// (the frames held were grouped with the old offsets).
+fn align(spec: &SceneSpec, shared: &Shared, corrections: &[i64]) {
+    for ((camera, offset), &k) in spec
+        .cameras
+        .iter()
+        .zip(shared.offsets.iter())
+        .zip(corrections)
+    {
+        if k == 0 {
+            continue;
+        }
+        let from = offset.load(Ordering::Acquire);
+        let to = from
+            .saturating_add(k)
+            .clamp(-CameraSpec::MAX_OFFSET, CameraSpec::MAX_OFFSET);
+        offset.store(to, Ordering::Release);
+        shared.metrics.clock_aligned(&spec.name, &camera.name);
+        tracing::warn!(
+            scene = %spec.name,
+            camera = %camera.name,
+            from,
+            to,
+            "auto-align: camera clock offset changed (its batches now go to frame id - {to})"
+        );
+    }
+    lock(&shared.window).clear();
+}
+
+/// Sets the gauges and logs each camera that went out of sync or came back.
+fn report_changes(
+    spec: &SceneSpec,
+    report: &ClockEstimate,
+    metrics: &Metrics,
+    flagged: &mut [bool],
+) {
+    for (camera, was) in report.cameras.iter().zip(flagged) {
+        metrics.camera_offset(
+            &spec.name,
+            &camera.camera,
+            camera.offset_frames,
+            camera.confidence,
+        );
+        let off = camera.offset_frames.is_some_and(|f| f.abs() > WARN_FRAMES);
+        if off && !*was {
+            tracing::warn!(
+                scene = %spec.name,
+                camera = %camera.camera,
+                offset_frames = camera.offset_frames.unwrap_or_default(),
+                offset_ids = camera.offset_ids.unwrap_or_default(),
+                confidence = camera.confidence,
+                "camera clock out of sync with the scene: declare its offset ({}:WxH@{:+}) \
+                 or fix the camera's clock",
+                camera.camera,
+                camera.offset_ids.unwrap_or_default()
+            );
+        } else if !off && *was {
+            tracing::info!(scene = %spec.name, camera = %camera.camera, "camera clock back in sync");
+        }
+        *was = off;
+    }
+}
+
+/// The published form of an estimate.
+fn describe(spec: &SceneSpec, found: &OffsetEstimate, frames: usize, as_of: u64) -> ClockEstimate {
+    let step = found.step.max(1);
+    ClockEstimate {
+        frames,
+        as_of_frame: as_of,
+        step,
+        reference: spec.cameras[found.reference].name.clone(),
+        cameras: found
+            .cameras
+            .iter()
+            .map(|c| CameraClock {
+                camera: spec.cameras[c.camera].name.clone(),
+                offset_frames: c.refined.map(|r| r / step as f32),
+                offset_ids: c.frames,
+                confidence: c.confidence,
+            })
+            .collect(),
+    }
+}

@@ -1,0 +1,263 @@
+//! `crossview sync-check`: each camera's clock offset, estimated from a recording's detections
+//! with the model (`crossview_core::offsets`), as a table or JSON.
+use std::num::NonZeroUsize;
+use std::path::PathBuf;
+
+use anyhow::{Context, bail};
+use clap::Args;
+use serde::Serialize;
+
+use crossview_core::association::embed_frame;
+use crossview_core::offsets::{
+    CameraSeries, OffsetConfig, OffsetEstimate, PairProfile, camera_pairs, frame_step, profile,
+    solve,
+};
+use crossview_core::{Encoder, SceneSpec};
+use crossview_data::Recording;
+use crossview_eval::parallel::{map_ordered, worker_count};
+
+use super::eval::{check_scene, load_and_read};
+
+/// Largest `--max-offset` (frame steps): the work grows linearly with it.
+const MAX_SEARCH: u32 = 500;
+
+/// Arguments of `crossview sync-check`.
+#[derive(Debug, Args)]
+pub struct SyncCheckArgs {
+    /// Model file (SPEC §8 ONNX) trained on this scene's cameras.
+    #[arg(long, env = "CROSSVIEW_MODEL")]
+    pub model: PathBuf,
+    /// Recording (SPEC §7 JSONL; ids, if any, are ignored): a file or a directory; repeatable,
+    /// read as one recording.
+    #[arg(long, required = true)]
+    pub data: Vec<PathBuf>,
+    /// Frames per second of the recording (one frame is one frame step of ids, e.g. 2 for
+    /// WILDTRACK, whose ids step by 5 every 0.5 s): offsets are also given in seconds.
+    #[arg(long)]
+    pub fps: Option<f64>,
+    /// Largest offset searched, in frame steps either way (a step is the recording's gap
+    /// between frame ids, e.g. 5 for WILDTRACK); at most 500.
+    #[arg(long, default_value_t = OffsetConfig::default().max_offset)]
+    pub max_offset: u32,
+    /// Camera the offsets are relative to (default: the camera at the median offset, so
+    /// that the cameras out of step with the majority are the ones shown shifted).
+    #[arg(long)]
+    pub reference: Option<String>,
+    /// Write the estimate as JSON on standard output instead of a table.
+    #[arg(long)]
+    pub json: bool,
+    /// Shift a camera's frame ids by N frame steps before estimating, as if its clock ran
+    /// late (`CAMERA:N`, N may be negative; repeatable): checks the estimate on a recording
+    /// known to be in sync.
+    #[arg(long, value_name = "CAMERA:N")]
+    pub simulate_lag: Vec<String>,
+    /// Worker threads (default: the machine's available parallelism).
+    #[arg(long, env = "CROSSVIEW_WORKERS")]
+    pub workers: Option<NonZeroUsize>,
+}
+
+/// The JSON form: the estimate with camera names and seconds.
+#[derive(Serialize)]
+struct Report<'a> {
+    scene: &'a str,
+    frames: usize,
+    fps: Option<f64>,
+    reference: &'a str,
+    step: i64,
+    cameras: Vec<CameraRow<'a>>,
+    pairs: &'a [crossview_core::offsets::PairSummary],
+}
+
+#[derive(Serialize)]
+struct CameraRow<'a> {
+    name: &'a str,
+    #[serde(flatten)]
+    offset: &'a crossview_core::offsets::CameraOffset,
+    seconds: Option<f64>,
+}
+
+/// Runs `crossview sync-check`.
+pub fn run(args: SyncCheckArgs) -> anyhow::Result<()> {
+    if args.max_offset == 0 || args.max_offset > MAX_SEARCH {
+        bail!(
+            "--max-offset must be within 1..={MAX_SEARCH}, got {}",
+            args.max_offset
+        );
+    }
+    if let Some(fps) = args.fps
+        && !(fps.is_finite() && fps > 0.0)
+    {
+        bail!("--fps must be a positive number, got {fps}");
+    }
+    let workers = worker_count(args.workers);
+    let (mut encoders, recording) = load_and_read(&args.model, &args.data, 1)?;
+    let meta = encoders[0].metadata().clone();
+    check_scene(&recording.scene, &meta)?;
+    let scene = &recording.scene;
+    let reference = args
+        .reference
+        .as_deref()
+        .map(|name| scene.camera_index(name))
+        .transpose()?;
+    let lags = parse_lags(scene, &args.simulate_lag)?;
+    let series = embed_series(&mut encoders[0], &recording, &lags)?;
+    let step = frame_step(series.iter().flat_map(CameraSeries::frame_ids));
+    let cfg = OffsetConfig {
+        max_offset: args.max_offset,
+        ..OffsetConfig::default()
+    };
+    let estimate = estimate(&series, step, reference, &cfg, workers)?;
+    let report = Report {
+        scene: &scene.name,
+        frames: recording.frames.len(),
+        fps: args.fps,
+        reference: &scene.cameras[estimate.reference].name,
+        step,
+        cameras: estimate
+            .cameras
+            .iter()
+            .map(|c| CameraRow {
+                name: &scene.cameras[c.camera].name,
+                offset: c,
+                seconds: c
+                    .refined
+                    .zip(args.fps)
+                    .map(|(r, fps)| f64::from(r) / step as f64 / fps),
+            })
+            .collect(),
+        pairs: &estimate.pairs,
+    };
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        print!("{}", table(&report, args.max_offset));
+    }
+    Ok(())
+}
+
+/// `CAMERA:N` → per camera, a lag in frame steps.
+fn parse_lags(scene: &SceneSpec, specs: &[String]) -> anyhow::Result<Vec<i64>> {
+    let mut lags = vec![0i64; scene.cameras.len()];
+    for spec in specs {
+        let (name, n) = spec
+            .rsplit_once(':')
+            .with_context(|| format!("--simulate-lag wants CAMERA:N, got '{spec}'"))?;
+        let n: i64 = n
+            .trim_start_matches('+')
+            .parse()
+            .with_context(|| format!("--simulate-lag: '{n}' is not a whole number"))?;
+        if n.unsigned_abs() > u64::from(MAX_SEARCH) {
+            bail!("--simulate-lag: {n} is beyond ±{MAX_SEARCH} steps");
+        }
+        lags[scene.camera_index(name)?] = n;
+    }
+    Ok(lags)
+}
+
+/// Every camera's embeddings over time, frame ids shifted by `lags` (in frame steps of the
+/// recording's unshifted ids).
+fn embed_series(
+    encoder: &mut dyn Encoder,
+    recording: &Recording,
+    lags: &[i64],
+) -> anyhow::Result<Vec<CameraSeries>> {
+    let scene = &recording.scene;
+    let step = frame_step(
+        recording
+            .frames
+            .iter()
+            .filter_map(|f| i64::try_from(f.frame_id).ok()),
+    );
+    let mut series = vec![CameraSeries::new(); scene.cameras.len()];
+    let mut skipped = 0usize;
+    for frame in &recording.frames {
+        let Ok(id) = i64::try_from(frame.frame_id) else {
+            skipped += 1;
+            continue;
+        };
+        let embeddings = embed_frame(encoder, scene, frame)?;
+        for (c, s) in series.iter_mut().enumerate() {
+            if let Some(view) = embeddings.view(c) {
+                let shifted = lags[c].checked_mul(step).and_then(|d| id.checked_add(d));
+                match shifted {
+                    Some(t) => s.insert(t, view.to_owned()),
+                    None => skipped += 1,
+                }
+            }
+        }
+    }
+    if skipped > 0 {
+        tracing::warn!(skipped, "frame ids beyond 2^63 - 1 left out");
+    }
+    Ok(series)
+}
+
+/// Profiles of every camera pair (on `workers` threads), then the joint fit.
+fn estimate(
+    series: &[CameraSeries],
+    step: i64,
+    reference: Option<usize>,
+    cfg: &OffsetConfig,
+    workers: usize,
+) -> anyhow::Result<OffsetEstimate> {
+    let n = series.len();
+    let pairs: Vec<(usize, usize)> = camera_pairs(n).collect();
+    let mut states = vec![(); workers.clamp(1, pairs.len().max(1))];
+    let mut profiles: Vec<(usize, usize, PairProfile)> = Vec::with_capacity(pairs.len());
+    map_ordered(
+        &pairs,
+        &mut states,
+        1,
+        |_, _, &(a, b)| -> anyhow::Result<PairProfile> {
+            Ok(profile(&series[a], &series[b], step, cfg))
+        },
+        |i, p| {
+            profiles.push((pairs[i].0, pairs[i].1, p));
+            Ok(())
+        },
+    )?;
+    let frames: Vec<usize> = series.iter().map(CameraSeries::len).collect();
+    Ok(solve(n, &profiles, &frames, step, reference, cfg))
+}
+
+/// The human-readable table.
+fn table(r: &Report, max_offset: u32) -> String {
+    let mut out = format!(
+        "scene '{}': {} frames, frame step {}, searched ±{} steps; offsets relative to {}\n",
+        r.scene, r.frames, r.step, max_offset, r.reference
+    );
+    out.push_str(&format!(
+        "{:<16} {:>8} {:>9} {:>9} {:>10} {:>5} {:>7}\n",
+        "camera", "offset", "refined", "seconds", "confidence", "pairs", "z"
+    ));
+    for c in &r.cameras {
+        let o = c.offset;
+        match (o.frames, o.refined) {
+            (Some(f), Some(refined)) => out.push_str(&format!(
+                "{:<16} {:>+8} {:>+9.2} {:>9} {:>10.2} {:>5} {:>7.1}\n",
+                c.name,
+                f,
+                refined,
+                c.seconds.map_or("-".into(), |s| format!("{s:+.2}")),
+                o.confidence,
+                o.pairs,
+                o.z
+            )),
+            _ => out.push_str(&format!(
+                "{:<16} {:>8} ({})\n",
+                c.name,
+                "unknown",
+                match o.unknown {
+                    Some(crossview_core::offsets::Unknown::TooFewFrames) => "too few frames",
+                    _ => "no confident pair: no overlap with another camera, or nobody moved",
+                }
+            )),
+        }
+    }
+    let used = r.pairs.iter().filter(|p| p.used).count();
+    out.push_str(&format!(
+        "{used} of {} camera pairs confident and consistent\n",
+        r.pairs.len()
+    ));
+    out
+}

@@ -1,0 +1,142 @@
+//! `crossview sync-check` as a user runs it: the real binary, the real ONNX Runtime, the
+//! shipped `models/demo.onnx` and a simulated `square4` recording. In sync, every camera is
+//! at 0; with one camera's ids shifted (`--simulate-lag`), that camera and only it is found at
+//! the shift; a recording whose header declares the shift (`@+N`) is back in sync; bad
+//! arguments are refused with a message.
+use std::process::Command;
+
+use crossview_testing::{repo_root, run_crossview};
+use serde_json::Value;
+
+const BIN: &str = env!("CARGO_BIN_EXE_crossview");
+
+fn simulate(dir: &std::path::Path) -> String {
+    let rec = dir.join("sim.jsonl");
+    let rec = rec.to_str().unwrap().to_string();
+    run_crossview(
+        BIN,
+        &[
+            "simulate", "--preset", "square4", "--frames", "300", "--seed", "4", "--out", &rec,
+        ],
+        &[],
+    );
+    rec
+}
+
+fn check(rec: &str, extra: &[&str]) -> Value {
+    let model = repo_root().join("models/demo.onnx");
+    let mut args = vec![
+        "sync-check",
+        "--model",
+        model.to_str().unwrap(),
+        "--data",
+        rec,
+        "--json",
+    ];
+    args.extend_from_slice(extra);
+    serde_json::from_str(&run_crossview(BIN, &args, &[("CROSSVIEW_WORKERS", "2")])).unwrap()
+}
+
+fn offsets(report: &Value) -> Vec<Option<i64>> {
+    report["cameras"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["frames"].as_i64())
+        .collect()
+}
+
+#[test]
+fn sync_check_finds_a_lagging_camera_and_its_declared_offset_removes_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = simulate(dir.path());
+    let report = check(&rec, &[]);
+    assert_eq!(offsets(&report), vec![Some(0); 4], "{report}");
+    assert_eq!(report["step"], 1);
+
+    let report = check(&rec, &["--simulate-lag", "cam1:-3", "--fps", "10"]);
+    assert_eq!(
+        offsets(&report),
+        vec![Some(0), Some(-3), Some(0), Some(0)],
+        "{report}"
+    );
+    let cam1 = &report["cameras"][1];
+    assert_eq!(cam1["name"], "cam1");
+    assert!(
+        (cam1["seconds"].as_f64().unwrap() + 0.3).abs() < 0.05,
+        "{cam1}"
+    );
+    assert!(cam1["confidence"].as_f64().unwrap() > 0.0, "{cam1}");
+    assert!(report["pairs"].as_array().unwrap().len() == 6, "{report}");
+
+    // The same lag written into the recording, then declared in its header: in sync again.
+    let text = std::fs::read_to_string(&rec).unwrap();
+    let mut lines = text.lines();
+    let mut header: Value = serde_json::from_str(lines.next().unwrap()).unwrap();
+    let mut out = Vec::new();
+    for line in lines.filter(|l| !l.trim().is_empty()) {
+        let mut batch: Value = serde_json::from_str(line).unwrap();
+        if batch["camera"] == "cam1" {
+            let f = batch["frame_id"].as_u64().unwrap();
+            batch["frame_id"] = (f + 5).into();
+        }
+        out.push(batch.to_string());
+    }
+    let lagged = dir.path().join("lagged.jsonl");
+    let write = |header: &Value, path: &std::path::Path| {
+        std::fs::write(path, format!("{header}\n{}\n", out.join("\n"))).unwrap();
+    };
+    write(&header, &lagged);
+    let report = check(lagged.to_str().unwrap(), &[]);
+    assert_eq!(
+        offsets(&report),
+        vec![Some(0), Some(5), Some(0), Some(0)],
+        "{report}"
+    );
+    header["scene"]["cameras"][1]["offset"] = 5.into();
+    let declared = dir.path().join("declared.jsonl");
+    write(&header, &declared);
+    let report = check(declared.to_str().unwrap(), &[]);
+    assert_eq!(offsets(&report), vec![Some(0); 4], "{report}");
+
+    // A table for people.
+    let model = repo_root().join("models/demo.onnx");
+    let table = run_crossview(
+        BIN,
+        &[
+            "sync-check",
+            "--model",
+            model.to_str().unwrap(),
+            "--data",
+            &rec,
+            "--simulate-lag",
+            "cam2:2",
+        ],
+        &[],
+    );
+    assert!(table.contains("cam2") && table.contains("+2"), "{table}");
+}
+
+#[test]
+fn sync_check_refuses_bad_arguments_with_a_message() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = simulate(dir.path());
+    let model = repo_root().join("models/demo.onnx");
+    let model = model.to_str().unwrap();
+    for (extra, says) in [
+        (vec!["--simulate-lag", "nosuch:2"], "nosuch"),
+        (vec!["--simulate-lag", "cam1:x"], "whole number"),
+        (vec!["--max-offset", "0"], "--max-offset"),
+        (vec!["--max-offset", "100000"], "--max-offset"),
+        (vec!["--fps", "NaN"], "--fps"),
+        (vec!["--reference", "nosuch"], "nosuch"),
+    ] {
+        let mut args = vec!["sync-check", "--model", model, "--data", &rec];
+        args.extend_from_slice(&extra);
+        let out = Command::new(BIN).args(&args).output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{extra:?} was accepted");
+        assert!(stderr.contains(says), "{extra:?}: {stderr}");
+        assert!(!stderr.contains("panicked"), "{extra:?}: {stderr}");
+    }
+}
