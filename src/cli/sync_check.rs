@@ -91,22 +91,25 @@ pub fn run(args: SyncCheckArgs) -> anyhow::Result<()> {
     }
     let workers = worker_count(args.workers);
     let (mut encoders, recording) = load_and_read(&args.model, &args.data, 1)?;
-    let meta = encoders[0].metadata().clone();
-    check_scene(&recording.scene, &meta)?;
-    let scene = &recording.scene;
     let reference = args
         .reference
         .as_deref()
-        .map(|name| scene.camera_index(name))
+        .map(|name| recording.scene.camera_index(name))
         .transpose()?;
-    let lags = parse_lags(scene, &args.simulate_lag)?;
-    let series = embed_series(&mut encoders[0], &recording, &lags)?;
-    let step = frame_step(series.iter().flat_map(CameraSeries::frame_ids));
+    let lags = parse_lags(&recording.scene, &args.simulate_lag)?;
     let cfg = OffsetConfig {
         max_offset: args.max_offset,
         ..OffsetConfig::default()
     };
-    let estimate = estimate(&series, step, reference, &cfg, workers)?;
+    let (step, estimate) = estimate_recording(
+        &mut encoders[0],
+        &recording,
+        &lags,
+        reference,
+        &cfg,
+        workers,
+    )?;
+    let scene = &recording.scene;
     let report = Report {
         scene: &scene.name,
         frames: recording.frames.len(),
@@ -133,6 +136,69 @@ pub fn run(args: SyncCheckArgs) -> anyhow::Result<()> {
         print!("{}", table(&report, args.max_offset));
     }
     Ok(())
+}
+
+/// Every camera's offset in `recording` (its ids shifted by `lags` frame steps first), with the
+/// frame step: the embeddings from `encoder`, the pairs profiled on `workers` threads.
+pub(crate) fn estimate_recording(
+    encoder: &mut crossview_model::OnnxEncoder,
+    recording: &Recording,
+    lags: &[i64],
+    reference: Option<usize>,
+    cfg: &OffsetConfig,
+    workers: usize,
+) -> anyhow::Result<(i64, OffsetEstimate)> {
+    check_scene(&recording.scene, encoder.metadata())?;
+    let series = embed_series(encoder, recording, lags)?;
+    let step = frame_step(series.iter().flat_map(CameraSeries::frame_ids));
+    Ok((step, estimate(&series, step, reference, cfg, workers)?))
+}
+
+/// After `crossview train`: every camera's offset in the training recording `data`, estimated
+/// with the model just written, as warnings (none when the cameras look in sync). A camera
+/// out of sync shows as an offset, or — since training on it taught the model no consistent
+/// geometry for it — as linked to no other camera while the others are.
+pub(crate) fn check_after_training(
+    model: &std::path::Path,
+    data: &[PathBuf],
+) -> anyhow::Result<Vec<String>> {
+    let (mut encoders, recording) = load_and_read(model, data, 1)?;
+    let lags = vec![0; recording.scene.cameras.len()];
+    let cfg = OffsetConfig::default();
+    let (step, found) = estimate_recording(
+        &mut encoders[0],
+        &recording,
+        &lags,
+        None,
+        &cfg,
+        worker_count(None),
+    )?;
+    Ok(out_of_sync(&recording.scene, step, &found))
+}
+
+/// The warnings for an estimate: each camera off the reference, and each camera linked to no
+/// other while at least two are.
+fn out_of_sync(scene: &SceneSpec, step: i64, found: &OffsetEstimate) -> Vec<String> {
+    let known = found.cameras.iter().filter(|c| c.frames.is_some()).count();
+    found
+        .cameras
+        .iter()
+        .filter_map(|c| {
+            let name = &scene.cameras[c.camera].name;
+            match c.frames {
+                Some(0) => None,
+                Some(ids) => Some(format!(
+                    "camera '{name}' is {ids:+} frame ids ({:+.1} frames) off the others",
+                    f64::from(c.refined.unwrap_or(0.0)) / step.max(1) as f64
+                )),
+                None if known >= 2 => Some(format!(
+                    "camera '{name}' is linked to no other camera by the new model (it overlaps \
+                     with none, or its clock is off and its geometry was not learnt)"
+                )),
+                None => None,
+            }
+        })
+        .collect()
 }
 
 /// `CAMERA:N` → per camera, a lag in frame steps.
@@ -260,4 +326,58 @@ fn table(r: &Report, max_offset: u32) -> String {
         r.pairs.len()
     ));
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crossview_core::offsets::CameraOffset;
+    use crossview_core::{CameraSpec, offsets::Unknown};
+
+    fn camera(c: usize, frames: Option<i64>) -> CameraOffset {
+        CameraOffset {
+            camera: c,
+            frames,
+            refined: frames.map(|f| f as f32),
+            pairs: 2,
+            z: 8.0,
+            residual: 0.0,
+            confidence: 0.6,
+            unknown: frames.is_none().then_some(Unknown::NoConfidentPair),
+        }
+    }
+
+    #[test]
+    fn out_of_sync_names_offsets_and_unlinked_cameras() {
+        let scene = SceneSpec {
+            name: "s".into(),
+            cameras: (0..4)
+                .map(|i| CameraSpec::new(format!("c{i}"), 640, 480))
+                .collect(),
+        };
+        let estimate = |cams: Vec<CameraOffset>| OffsetEstimate {
+            reference: 0,
+            step: 5,
+            cameras: cams,
+            pairs: Vec::new(),
+        };
+        let in_sync = estimate((0..4).map(|c| camera(c, Some(0))).collect());
+        assert!(out_of_sync(&scene, 5, &in_sync).is_empty());
+        let off = estimate(vec![
+            camera(0, Some(0)),
+            camera(1, Some(10)),
+            camera(2, None),
+            camera(3, Some(0)),
+        ]);
+        let w = out_of_sync(&scene, 5, &off);
+        assert_eq!(w.len(), 2, "{w:?}");
+        assert!(
+            w[0].contains("'c1' is +10 frame ids (+2.0 frames)"),
+            "{w:?}"
+        );
+        assert!(w[1].contains("'c2' is linked to no other"), "{w:?}");
+        // Nothing known (a model that learnt nothing, a static scene): no claim.
+        let none = estimate((0..4).map(|c| camera(c, None)).collect());
+        assert!(out_of_sync(&scene, 5, &none).is_empty());
+    }
 }

@@ -173,6 +173,10 @@ pub struct TrainArgs {
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
+    /// Skip the check, after training, that the recording's cameras are in sync (each
+    /// camera's clock offset estimated with the new model, as `crossview sync-check` does).
+    #[arg(long)]
+    pub no_sync_check: bool,
 }
 
 /// Starting points for the training knobs.
@@ -317,6 +321,35 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         report.summary,
         report.curve.display(),
         report.data
+    );
+    if !args.no_sync_check {
+        warn_if_out_of_sync(&args)?;
+    }
+    Ok(())
+}
+
+/// Warns loudly when the training recording's cameras look out of sync (training on them
+/// teaches the wrong geometry).
+fn warn_if_out_of_sync(args: &TrainArgs) -> anyhow::Result<()> {
+    let warnings = super::sync_check::check_after_training(&args.out, &args.data)
+        .context("checking the recording's camera clocks with the new model")?;
+    if warnings.is_empty() {
+        return Ok(());
+    }
+    for w in &warnings {
+        tracing::warn!(warning = %w, "training recording out of sync");
+    }
+    eprintln!(
+        "\nWARNING: the training recording's cameras look out of sync (estimated with the new \
+         model):\n{}\nTraining on cameras out of sync teaches the model the wrong geometry. \
+         Check each camera's clock with `crossview sync-check --model M --data ...` using a \
+         model trained on cameras in sync, declare the offsets in the recording's header \
+         (\"offset\": N) and train again (docs/clock-offsets.md).\n",
+        warnings
+            .iter()
+            .map(|w| format!("  - {w}"))
+            .collect::<Vec<_>>()
+            .join("\n")
     );
     Ok(())
 }

@@ -33,6 +33,8 @@ fn demo_model() -> Vec<ModelSpec> {
 
 fn configure(c: &mut ServeConfig, declared: Option<SceneSpec>) {
     c.sync_timeout = Duration::from_millis(300);
+    // The results are read after the push (a long auto-align stream stays within it).
+    c.limits.subscriber_buffer = 20_000;
     c.limits.clock_watch = ClockWatchConfig {
         window: 250,
         interval: Duration::ZERO,

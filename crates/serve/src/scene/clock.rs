@@ -1,11 +1,11 @@
 //! The live clock watch: each camera's clock offset, estimated from the embeddings the worker
 //! computed anyway ([`crossview_core::offsets`]), off the hot path.
 //!
-//! The worker hands every associated frame's embeddings to [`ClockWatch::observe`], which
-//! copies them into a shared window of the last `window` frames per camera (a few kilobytes
-//! per frame, under a short lock). Once per `interval` the scene's own watch thread copies
-//! the window, if it changed, and estimates every camera's offset from it: the worker never
-//! waits for an estimate and the work is bounded by one estimate per interval. The thread publishes the estimate in the
+//! After publishing a frame, the worker moves its embeddings to the scene's own watch thread
+//! ([`ClockWatch::observe`]: no copy, no lock, never blocks), which keeps the last `window`
+//! frames per camera (a few kilobytes per frame) and, once per `interval`, estimates every
+//! camera's offset from them if they changed: the worker never waits for an estimate and the
+//! work is bounded by one estimate per interval. The thread publishes the estimate in the
 //! scene description, as the `crossview_camera_offset_frames{scene,camera}` and
 //! `crossview_camera_offset_confidence` gauges, and logs a warning when a camera's offset
 //! leaves ±0.5 frame while known (and a note when it comes back).
@@ -21,7 +21,7 @@
 //! are refused as late (counted, as any late batch) while it catches up.
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicI64, Ordering};
-use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, channel};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, sync_channel};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -75,33 +75,83 @@ const WARN_FRAMES: f32 = 0.5;
 /// Poll period of the watch thread when the interval is shorter.
 const MIN_POLL: Duration = Duration::from_millis(50);
 
-/// The rolling window the worker fills and the watch thread copies.
-#[derive(Default)]
+/// Frames queued for the watch thread at most (it takes them in microseconds, except while
+/// estimating; beyond, frames are left out of the window, never waited for).
+const QUEUE: usize = 4096;
+
+/// A frame for the watch thread: the worker's epoch (bumped on a model swap), its id and its
+/// embeddings (moved, not copied).
+type Observed = (u64, u64, FrameEmbeddings);
+
+/// The rolling window of the watch thread.
 struct Window {
     series: Vec<CameraSeries>,
     /// Frame ids held, oldest first.
     ids: VecDeque<i64>,
+    capacity: usize,
     /// Newest frame id seen.
     as_of: u64,
-    /// Bumped on every change (the thread skips an unchanged window).
-    version: u64,
+    /// Epoch of the frames held.
+    epoch: u64,
+    /// Changed since the last estimate.
+    changed: bool,
 }
 
 impl Window {
+    fn new(cameras: usize, capacity: usize) -> Self {
+        Window {
+            series: vec![CameraSeries::new(); cameras],
+            ids: VecDeque::new(),
+            capacity,
+            as_of: 0,
+            epoch: 0,
+            changed: false,
+        }
+    }
+
     fn clear(&mut self) {
         self.series
             .iter_mut()
             .for_each(|s| *s = CameraSeries::new());
         self.ids.clear();
-        self.version += 1;
+        self.changed = true;
+    }
+
+    /// Adds a frame, dropping the oldest beyond the capacity; a frame not newer than the
+    /// window (a restarted stream) is left out, so the window stays ordered.
+    fn insert(&mut self, (epoch, frame_id, embeddings): Observed) {
+        if epoch != self.epoch {
+            self.clear();
+            self.epoch = epoch;
+        }
+        let Ok(id) = i64::try_from(frame_id) else {
+            return;
+        };
+        if self.ids.back().is_some_and(|&last| id <= last) {
+            return;
+        }
+        for (c, series) in self.series.iter_mut().enumerate() {
+            if let Some(view) = embeddings.view(c) {
+                series.insert(id, view.to_owned());
+            }
+        }
+        self.ids.push_back(id);
+        if self.ids.len() > self.capacity {
+            self.ids.pop_front();
+            if let Some(&oldest) = self.ids.front() {
+                self.series.iter_mut().for_each(|s| s.retain_from(oldest));
+            }
+        }
+        self.as_of = frame_id;
+        self.changed = true;
     }
 }
 
-/// The worker's side of the watch: fills the shared window; dropping it stops the thread.
+/// The worker's side of the watch: hands frames to the watch thread; dropping it stops the
+/// thread.
 pub(super) struct ClockWatch {
-    capacity: usize,
-    window: Arc<Mutex<Window>>,
-    _stop: Sender<()>,
+    tx: SyncSender<Observed>,
+    epoch: u64,
 }
 
 impl ClockWatch {
@@ -117,111 +167,96 @@ impl ClockWatch {
         if config.window == 0 {
             return None;
         }
-        let window = Arc::new(Mutex::new(Window {
-            series: vec![CameraSeries::new(); spec.cameras.len()],
-            ..Window::default()
-        }));
-        let (stop, stopped) = channel();
+        let (tx, rx) = sync_channel(QUEUE);
         let watched = spec.clone();
-        let shared = window.clone();
         let spawned = std::thread::Builder::new()
             .name(format!("clock-{}", spec.name))
             .spawn(move || {
                 let shared = Shared {
                     metrics,
-                    window: shared,
                     state,
                     offsets,
                 };
-                watch(&watched, config, &shared, &stopped);
+                watch(&watched, config, &shared, &rx);
             });
         if let Err(e) = spawned {
             tracing::error!(scene = %spec.name, error = %e, "clock watch not started");
             return None;
         }
-        Some(ClockWatch {
-            capacity: config.window,
-            window,
-            _stop: stop,
-        })
+        Some(ClockWatch { tx, epoch: 0 })
     }
 
-    /// Adds frame `frame_id`'s embeddings to the window (a copy under a short lock: the
-    /// estimate runs on the watch thread, never here).
-    pub(super) fn observe(&mut self, frame_id: u64, embeddings: &FrameEmbeddings) {
-        let Ok(id) = i64::try_from(frame_id) else {
-            return;
-        };
-        let mut w = lock(&self.window);
-        if w.ids.back().is_some_and(|&last| id <= last) {
-            return; // Not newer than the window (a restarted stream): keep it ordered.
-        }
-        for (c, series) in w.series.iter_mut().enumerate() {
-            if let Some(view) = embeddings.view(c) {
-                series.insert(id, view.to_owned());
-            }
-        }
-        w.ids.push_back(id);
-        if w.ids.len() > self.capacity {
-            w.ids.pop_front();
-            if let Some(&oldest) = w.ids.front() {
-                w.series.iter_mut().for_each(|s| s.retain_from(oldest));
-            }
-        }
-        w.as_of = frame_id;
-        w.version += 1;
+    /// Hands frame `frame_id`'s embeddings to the watch thread (moved: no copy, no lock, never
+    /// blocks; a frame is left out while the thread's queue is full).
+    pub(super) fn observe(&mut self, frame_id: u64, embeddings: FrameEmbeddings) {
+        let _ = self.tx.try_send((self.epoch, frame_id, embeddings));
     }
 
     /// Forgets the window (a new model's embeddings are not comparable with the old one's).
     pub(super) fn reset(&mut self) {
-        lock(&self.window).clear();
+        self.epoch += 1;
     }
 }
 
 /// What the watch thread shares with the scene.
 struct Shared {
     metrics: Metrics,
-    window: Arc<Mutex<Window>>,
     state: Arc<Mutex<Option<ClockEstimate>>>,
     offsets: Offsets,
 }
 
-/// The watch thread: once per interval, an estimate of the window if it changed and holds
-/// enough frames, until the worker drops its [`ClockWatch`].
-fn watch(spec: &SceneSpec, config: ClockWatchConfig, shared: &Shared, stopped: &Receiver<()>) {
+/// The watch thread: takes the worker's frames into its window and, once per interval, makes
+/// an estimate of the window if it changed and holds enough frames; ends when the worker
+/// drops its [`ClockWatch`].
+fn watch(spec: &SceneSpec, config: ClockWatchConfig, shared: &Shared, rx: &Receiver<Observed>) {
     let offsets = OffsetConfig {
         max_offset: config.max_offset,
         ..OffsetConfig::default()
     };
+    let period = config.interval.max(MIN_POLL);
     let enough = (config.window / 2).max(offsets.min_frames);
+    let mut window = Window::new(spec.cameras.len(), config.window);
     let mut flagged = vec![false; spec.cameras.len()];
     let mut proposed: Option<Vec<i64>> = None;
-    let mut seen = 0;
-    while let Err(RecvTimeoutError::Timeout) = stopped.recv_timeout(config.interval.max(MIN_POLL)) {
-        let (series, frames, as_of) = {
-            let w = lock(&shared.window);
-            if w.version == seen || w.ids.len() < enough {
-                continue;
-            }
-            seen = w.version;
-            (w.series.clone(), w.ids.len(), w.as_of)
-        };
+    let mut due = Instant::now() + period;
+    loop {
+        match rx.recv_timeout(due.saturating_duration_since(Instant::now())) {
+            Ok(frame) => window.insert(frame),
+            Err(RecvTimeoutError::Timeout) => {}
+            Err(RecvTimeoutError::Disconnected) => return,
+        }
+        if Instant::now() < due {
+            continue;
+        }
+        // Everything queued meanwhile first (frames wait here while an estimate runs).
+        while let Ok(frame) = rx.try_recv() {
+            window.insert(frame);
+        }
+        if !window.changed || window.ids.len() < enough {
+            due = Instant::now() + period;
+            continue;
+        }
+        window.changed = false;
         let t = Instant::now();
-        let step = frame_step(series.iter().flat_map(CameraSeries::frame_ids));
-        let found = estimate(&series, step, None, &offsets);
+        let step = frame_step(window.series.iter().flat_map(CameraSeries::frame_ids));
+        let found = estimate(&window.series, step, None, &offsets);
         shared.metrics.clock_estimate(&spec.name, t.elapsed());
-        let report = describe(spec, &found, frames, as_of);
+        let report = describe(spec, &found, window.ids.len(), window.as_of);
         report_changes(spec, &report, &shared.metrics, &mut flagged);
-        if config.auto_align && frames >= config.window {
+        if config.auto_align && window.ids.len() >= config.window {
             let now = proposal(&report);
             if now.iter().any(|&k| k != 0) && proposed.as_ref() == Some(&now) {
                 align(spec, shared, &now);
+                // The frames held were grouped with the old offsets.
+                window.clear();
                 proposed = None;
             } else {
                 proposed = Some(now);
             }
         }
         *lock(&shared.state) = Some(report);
+        // The next estimate one interval after this one ended.
+        due = Instant::now() + period;
     }
 }
 
@@ -242,8 +277,7 @@ fn proposal(report: &ClockEstimate) -> Vec<i64> {
         .collect()
 }
 
-/// Applies `corrections` to the scene's offsets, logs and counts each, and starts a new window
-/// (the frames held were grouped with the old offsets).
+/// Applies `corrections` to the scene's offsets, logs and counts each.
 fn align(spec: &SceneSpec, shared: &Shared, corrections: &[i64]) {
     for ((camera, offset), &k) in spec
         .cameras
@@ -268,7 +302,6 @@ fn align(spec: &SceneSpec, shared: &Shared, corrections: &[i64]) {
             "auto-align: camera clock offset changed (its batches now go to frame id - {to})"
         );
     }
-    lock(&shared.window).clear();
 }
 
 /// Sets the gauges and logs each camera that went out of sync or came back.

@@ -74,7 +74,7 @@ impl Worker {
         while let Ok(job) = rx.recv() {
             match job {
                 Job::Stream(e) => {
-                    let r = self.stream_result(&e.frame, e.first_seen);
+                    let (r, embeddings) = self.stream_result(&e.frame, e.first_seen);
                     self.metrics
                         .frame_latency(&self.spec.name, e.first_seen.elapsed());
                     self.queued.fetch_sub(1, Ordering::AcqRel);
@@ -88,6 +88,10 @@ impl Worker {
                             result: r,
                             views,
                         })));
+                    // After publishing: the clock watch's copy is off the latency path.
+                    if let (Some(c), Some(embeddings)) = (&mut self.clock, embeddings) {
+                        c.observe(e.frame.frame_id, embeddings);
+                    }
                 }
                 Job::Unary {
                     frame,
@@ -128,19 +132,21 @@ impl Worker {
     }
 
     /// The published result of a synchronized frame: its identities with their track ids, or
-    /// the error (message and kind, counted here: no caller sees it) without identities.
-    fn stream_result(&mut self, frame: &Frame, first_seen: Instant) -> FrameResult {
+    /// the error (message and kind, counted here: no caller sees it) without identities; and
+    /// the frame's embeddings when it was associated.
+    fn stream_result(
+        &mut self,
+        frame: &Frame,
+        first_seen: Instant,
+    ) -> (FrameResult, Option<FrameEmbeddings>) {
         if self.model.is_none() {
             self.metrics.unassociated(&self.spec.name);
             let mut r = self.result(frame, first_seen, Vec::new());
             r.status = ResultStatus::NoModel;
-            return r;
+            return (r, None);
         }
         match self.associate_in_time(frame, first_seen) {
             Ok((ids, embeddings)) => {
-                if let Some(c) = &mut self.clock {
-                    c.observe(frame.frame_id, &embeddings);
-                }
                 let tracks = match &mut self.tracker {
                     Some(tracker) => tracker
                         .update(frame, &ids, &embeddings)
@@ -155,7 +161,7 @@ impl Worker {
                     .zip(tracks)
                     .map(|(id, t)| identity_out(spec, id, t))
                     .collect();
-                self.result(frame, first_seen, ids)
+                (self.result(frame, first_seen, ids), Some(embeddings))
             }
             Err(e) => {
                 self.metrics.error(&e);
@@ -163,7 +169,7 @@ impl Worker {
                 r.error = Some(e.report());
                 r.error_kind = Some(e.kind().to_string());
                 r.status = ResultStatus::Failed;
-                r
+                (r, None)
             }
         }
     }
