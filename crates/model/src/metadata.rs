@@ -50,7 +50,7 @@ impl ModelMetadata {
     /// crossview crate version as model version.
     pub fn new(cameras: Vec<CameraSpec>) -> Self {
         ModelMetadata {
-            cameras,
+            cameras: without_offsets(cameras),
             threshold: 0.4,
             alpha: 0.1,
             version: env!("CARGO_PKG_VERSION").to_string(),
@@ -77,7 +77,8 @@ impl ModelMetadata {
         }
     }
 
-    /// The scene these cameras form, under the name `name`.
+    /// The scene these cameras form, under the name `name` (every camera in sync: clock
+    /// offsets belong to a scene's declaration, not to the model).
     pub fn scene(&self, name: &str) -> SceneSpec {
         SceneSpec {
             name: name.to_string(),
@@ -188,7 +189,7 @@ impl ModelMetadata {
             .then(|| unit(KEY_MATCH_THRESHOLD))
             .transpose()?;
         let meta = ModelMetadata {
-            cameras,
+            cameras: without_offsets(cameras),
             threshold: unit(KEY_THRESHOLD)?,
             alpha: unit(KEY_ALPHA)?,
             version: get(KEY_VERSION)?.clone(),
@@ -215,6 +216,16 @@ impl ModelMetadata {
     }
 }
 
+/// `cameras` with every clock offset at 0: a model describes cameras (names, image sizes),
+/// the installation's clocks are the scene declaration's (`@±N`), so a model trained on a
+/// recording with declared offsets does not carry them.
+fn without_offsets(cameras: Vec<CameraSpec>) -> Vec<CameraSpec> {
+    cameras
+        .into_iter()
+        .map(|c| CameraSpec { offset: 0, ..c })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -234,6 +245,21 @@ mod tests {
                 height: 480,
             },
         ]
+    }
+
+    #[test]
+    fn models_carry_no_clock_offsets() {
+        let mut cameras = cams();
+        cameras[1].offset = 5;
+        let m = ModelMetadata::new(cameras);
+        assert!(m.cameras.iter().all(|c| c.offset == 0));
+        let mut props = m.to_props();
+        props.insert(
+            KEY_CAMERAS.into(),
+            r#"[{"name":"a","width":8,"height":6,"offset":3}]"#.into(),
+        );
+        let back = ModelMetadata::from_props("m.onnx", &props).unwrap();
+        assert_eq!(back.cameras[0].offset, 0);
     }
 
     #[test]
