@@ -104,8 +104,9 @@ pub struct ServeArgs {
     pub max_rejected_lines: usize,
     /// Live clock watch: each camera's clock offset estimated from the last this many frames
     /// (`GET /v1/scenes/{scene}`, `crossview_camera_offset_frames`, a warning when a camera is
-    /// out of sync); 0 turns it off.
-    #[arg(long, env = "CROSSVIEW_CLOCK_WATCH_WINDOW", default_value_t = ClockWatchConfig::default().window)]
+    /// out of sync); 0 turns it off, at most 10000.
+    #[arg(long, env = "CROSSVIEW_CLOCK_WATCH_WINDOW", default_value_t = ClockWatchConfig::default().window,
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(0..=10_000))]
     pub clock_watch_window: usize,
     /// At most one clock estimate per this interval (bounds the watch's CPU share).
     #[arg(long, env = "CROSSVIEW_CLOCK_WATCH_INTERVAL", default_value = "10s", value_parser = parse_duration)]
@@ -501,6 +502,7 @@ mod tests {
         for bad in ["0", "101", "-1"] {
             assert!(parse(&["--clock-watch-max-offset", bad]).is_err(), "{bad}");
         }
+        assert!(parse(&["--clock-watch-window", "10001"]).is_err());
     }
 
     #[test]

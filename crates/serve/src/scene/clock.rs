@@ -76,8 +76,9 @@ const WARN_FRAMES: f32 = 0.5;
 const MIN_POLL: Duration = Duration::from_millis(50);
 
 /// Frames queued for the watch thread at most (it takes them in microseconds, except while
-/// estimating; beyond, frames are left out of the window, never waited for).
-const QUEUE: usize = 4096;
+/// estimating: ~0.6 s for 7 cameras; beyond, frames are left out of the window, never waited
+/// for). Bounds its memory: 512 frames of 7 cameras × 35 boxes × 64 floats is 32 MiB.
+const QUEUE: usize = 512;
 
 /// A frame for the watch thread: the worker's epoch (bumped on a model swap), its id and its
 /// embeddings (moved, not copied).
