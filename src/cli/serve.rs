@@ -6,8 +6,8 @@ use anyhow::Context;
 use clap::Args;
 
 use crossview_core::tracking::TrackerConfig;
+use crossview_serve::config::ClockWatchConfig;
 use crossview_serve::config::SceneDecl;
-use crossview_serve::scene::ClockWatchConfig;
 use crossview_serve::{
     ConnectionLimits, KafkaConfig, Limits, ModelSpec, RecordConfig, ServeConfig, TlsConfig,
     ValueFormat,

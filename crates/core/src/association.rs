@@ -5,17 +5,10 @@ use ndarray::Array2;
 use crate::Encoder;
 use crate::distances::{all_pairs_distances, euclidean_distances};
 use crate::identity::{Identity, IdentityConfig, build_identities, identity_matches};
-use crate::matching::{PairMatching, match_from_distances};
+pub use crate::matching::ViewPair;
+use crate::matching::match_from_distances;
 use crate::{Error, Result};
 use crate::{Frame, FrameEmbeddings, SceneSpec};
-
-/// The association of one camera pair within a frame.
-#[derive(Debug, Clone, PartialEq)]
-pub struct ViewPair {
-    pub cam_a: usize,
-    pub cam_b: usize,
-    pub matching: PairMatching,
-}
 
 /// Everything computed for one frame.
 #[derive(Debug, Clone, PartialEq)]

@@ -40,8 +40,8 @@
 use std::collections::BinaryHeap;
 use std::sync::Arc;
 
-use crate::association::ViewPair;
 use crate::calibration::Calibration;
+use crate::matching::ViewPair;
 use crate::matching::{Assigned, Match, PairMatching};
 
 /// A person seen by one or more cameras in one frame.

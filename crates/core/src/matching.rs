@@ -38,6 +38,14 @@ pub struct Assigned {
     pub distance: f32,
 }
 
+/// The association of one camera pair within a frame: the pair's cameras and its matching.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ViewPair {
+    pub cam_a: usize,
+    pub cam_b: usize,
+    pub matching: PairMatching,
+}
+
 /// The result of matching two views.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PairMatching {

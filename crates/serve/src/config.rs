@@ -162,6 +162,33 @@ pub(crate) fn validate_scene_name(name: &str) -> Result<()> {
     }
 }
 
+/// Settings of the live clock watch ([`crate::scene`]'s `clock` module, docs/clock-offsets.md).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ClockWatchConfig {
+    /// Most recent frames an estimate uses (0: the watch is off).
+    pub window: usize,
+    /// At most one estimate per this interval.
+    pub interval: Duration,
+    /// Largest offset searched, in frame steps either way (bounds the work).
+    pub max_offset: u32,
+    /// Apply a camera's estimated offset once two estimates over full, successive windows
+    /// agree on it (`--auto-align`); off by default.
+    pub auto_align: bool,
+}
+
+impl Default for ClockWatchConfig {
+    /// 300 frames (chosen on the simulator: BENCHMARKS.md, "Camera clock offsets"), one
+    /// estimate per 10 s, ±10 frames searched, no auto-align.
+    fn default() -> Self {
+        ClockWatchConfig {
+            window: 300,
+            interval: Duration::from_secs(10),
+            max_offset: 10,
+            auto_align: false,
+        }
+    }
+}
+
 /// Size and cost caps that keep one request from costing unbounded memory or time.
 ///
 /// Association cost model ([`super::cost`]): a frame with `n_c` boxes in camera `c` costs
@@ -197,7 +224,7 @@ pub struct Limits {
     pub max_rejected_lines: usize,
     /// The live clock watch's window, interval and search range ([`crate::scene`]): bounds
     /// its work to one estimate per interval.
-    pub clock_watch: crate::scene::ClockWatchConfig,
+    pub clock_watch: ClockWatchConfig,
 }
 
 impl Default for Limits {
@@ -213,7 +240,7 @@ impl Default for Limits {
             frame_deadline: Duration::from_secs(2),
             frame_window: super::sync::DEFAULT_FRAME_WINDOW,
             max_rejected_lines: 100,
-            clock_watch: crate::scene::ClockWatchConfig::default(),
+            clock_watch: ClockWatchConfig::default(),
         }
     }
 }
@@ -303,7 +330,7 @@ pub struct ServeConfig {
     /// Record every accepted batch ([`super::record`]) when set.
     pub record: Option<super::record::RecordConfig>,
     /// Kafka mode ([`super::kafka`]) beside gRPC and HTTP, when set.
-    pub kafka: Option<super::kafka::KafkaConfig>,
+    pub kafka: Option<super::kafka::config::KafkaConfig>,
 }
 
 impl std::fmt::Debug for ServeConfig {

@@ -49,7 +49,8 @@ use tower::ServiceExt;
 pub use config::{ConnectionLimits, Limits, ModelSpec, ServeConfig, TlsConfig};
 pub use kafka::{KafkaConfig, ValueFormat};
 pub use record::RecordConfig;
-pub use scene::{Scene, SceneInfo};
+pub use registry::SceneInfo;
+pub use scene::Scene;
 pub use service::Service;
 
 use crossview_core::Encoder;
@@ -216,7 +217,7 @@ impl Server {
                 Some(h) => h,
                 None => reload::listen_sighup()?,
             };
-            reload::spawn_on_sighup(self.service.clone(), hup);
+            service::spawn_reload_on_sighup(self.service.clone(), hup);
         }
         let limits = self.config.connections;
         let connections = conn::Connections::new(limits, self.service.metrics().clone());

@@ -6,11 +6,23 @@ use std::path::Path;
 use sha2::{Digest, Sha256};
 
 use super::config::{Limits, ModelSpec};
-use super::scene::SceneInfo;
 use crossview_core::Encoder;
 use crossview_core::SceneSpec;
+use crossview_core::association::AssociationConfig;
 use crossview_core::{Error, Result};
 use crossview_model::{ModelMetadata, OnnxEncoder};
+
+/// What a model file says about its scene: name and cameras, association settings, version.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SceneInfo {
+    /// Name and cameras.
+    pub spec: SceneSpec,
+    /// Association settings (SPEC §3 threshold and alpha, identity confidence), from the
+    /// model's metadata ([`crossview_model::ModelMetadata::association_config`]).
+    pub association: AssociationConfig,
+    /// Model version string.
+    pub version: String,
+}
 
 /// The scene description a model's metadata defines, checked against `limits`; `version` is
 /// what results will name ([`model_version`]).

@@ -8,9 +8,10 @@
 use std::sync::Arc;
 
 use crate::config::{Limits, ModelSpec};
+use crate::metrics::Metrics;
 use crate::registry;
-use crate::service::Service;
-use crossview_core::Error;
+use crate::scene::Scene;
+use crossview_core::{Error, Result};
 
 pub use crossview_api::types::ReloadOutcome;
 
@@ -32,15 +33,18 @@ impl Reloader {
         }
     }
 
-    /// Re-reads every scene's model file and swaps in those that changed.
-    pub(crate) async fn reload(&self, service: &Service) -> Vec<ReloadOutcome> {
+    /// Re-reads every scene's model file and swaps in those that changed; `scene_of` finds a
+    /// served scene by name.
+    pub(crate) async fn reload(
+        &self,
+        scene_of: impl Fn(&str) -> Result<Arc<Scene>>,
+        metrics: &Metrics,
+    ) -> Vec<ReloadOutcome> {
         let _one = self.running.lock().await;
         let mut out = Vec::with_capacity(self.models.len());
         for spec in &self.models {
-            let outcome = self.reload_one(service, spec).await;
-            service
-                .metrics()
-                .model_reload(&outcome.scene, &outcome.outcome);
+            let outcome = self.reload_one(scene_of(&spec.name), spec).await;
+            metrics.model_reload(&outcome.scene, &outcome.outcome);
             match &outcome.error {
                 Some(e) => {
                     tracing::warn!(scene = %outcome.scene, path = %spec.path.display(), error = %e, "model refused; the old one keeps serving")
@@ -54,9 +58,9 @@ impl Reloader {
         out
     }
 
-    async fn reload_one(&self, service: &Service, spec: &ModelSpec) -> ReloadOutcome {
-        let scene = match service.scene(&spec.name) {
-            Ok(s) => s.clone(),
+    async fn reload_one(&self, scene: Result<Arc<Scene>>, spec: &ModelSpec) -> ReloadOutcome {
+        let scene = match scene {
+            Ok(s) => s,
             Err(e) => return refused(spec, None, &e),
         };
         let current = scene.serving().map(|i| i.version);
@@ -106,7 +110,7 @@ enum Read {
     /// Its bytes are those of the model serving now.
     Unchanged,
     /// Different bytes, loaded (or refused).
-    Loaded(crossview_core::Result<(crate::SceneInfo, Box<dyn crossview_core::Encoder>)>),
+    Loaded(Result<(crate::SceneInfo, Box<dyn crossview_core::Encoder>)>),
 }
 
 fn refused(spec: &ModelSpec, version: Option<String>, e: &Error) -> ReloadOutcome {
@@ -119,29 +123,10 @@ fn refused(spec: &ModelSpec, version: Option<String>, e: &Error) -> ReloadOutcom
 }
 
 /// Starts listening for `SIGHUP`: from this call on the signal no longer ends the process,
-/// and one that arrives before [`spawn_on_sighup`] runs is delivered to it then.
+/// and one that arrives before [`crate::service::spawn_reload_on_sighup`] runs is delivered
+/// to it then.
 #[cfg(unix)]
-pub(crate) fn listen_sighup() -> crossview_core::Result<tokio::signal::unix::Signal> {
+pub(crate) fn listen_sighup() -> Result<tokio::signal::unix::Signal> {
     use tokio::signal::unix::{SignalKind, signal};
     signal(SignalKind::hangup()).map_err(|e| Error::internal_from("cannot listen for SIGHUP", e))
-}
-
-/// Reloads on every `SIGHUP` of `hup` until the service shuts down (the usual Unix
-/// convention).
-#[cfg(unix)]
-pub(crate) fn spawn_on_sighup(service: Arc<Service>, mut hup: tokio::signal::unix::Signal) {
-    let stop = service.shutting_down();
-    tokio::spawn(async move {
-        tokio::pin!(stop);
-        loop {
-            tokio::select! {
-                got = hup.recv() => {
-                    if got.is_none() { break; }
-                    tracing::info!("SIGHUP: reloading model files");
-                    service.reload().await;
-                }
-                _ = &mut stop => break,
-            }
-        }
-    });
 }

@@ -77,7 +77,10 @@ impl Service {
     /// [`crate::reload`]); one outcome per model file.
     pub async fn reload(&self) -> Vec<ReloadOutcome> {
         match &self.reloader {
-            Some(r) => r.reload(self).await,
+            Some(r) => {
+                let scene_of = |name: &str| self.scene(name).cloned();
+                r.reload(scene_of, &self.metrics).await
+            }
             None => Vec::new(),
         }
     }
@@ -306,4 +309,24 @@ async fn watch_stall(
             return;
         }
     }
+}
+
+/// Reloads on every `SIGHUP` of `hup` until the service shuts down (the usual Unix
+/// convention).
+#[cfg(unix)]
+pub(crate) fn spawn_reload_on_sighup(service: Arc<Service>, mut hup: tokio::signal::unix::Signal) {
+    let stop = service.shutting_down();
+    tokio::spawn(async move {
+        tokio::pin!(stop);
+        loop {
+            tokio::select! {
+                got = hup.recv() => {
+                    if got.is_none() { break; }
+                    tracing::info!("SIGHUP: reloading model files");
+                    service.reload().await;
+                }
+                _ = &mut stop => break,
+            }
+        }
+    });
 }

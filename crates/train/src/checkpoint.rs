@@ -7,10 +7,11 @@ use candle_core::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use crate::adam::Adam;
+use crate::config::TrainConfig;
 use crate::label_free::LabelFreeScores;
 use crate::model::{TrainModel, ce};
 use crate::pseudo::PseudoLabels;
-use crate::trainer::{Best, EpochRecord, RunState, TrainConfig, ValScores};
+use crate::state::{Best, EpochRecord, RunState, ValScores};
 use crossview_core::{Error, Result};
 
 const TENSORS: &str = "state.safetensors";

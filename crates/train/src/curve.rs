@@ -4,7 +4,7 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
-use crate::trainer::EpochRecord;
+use crate::state::EpochRecord;
 use crossview_core::{Error, Result};
 
 const W: f64 = 480.0;
@@ -201,7 +201,7 @@ fn escape(t: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::trainer::ValScores;
+    use crate::state::ValScores;
 
     #[test]
     fn svg_has_a_line_per_loss_and_the_validation_points() {

@@ -16,6 +16,7 @@ pub mod adam;
 pub mod calibrate;
 pub mod checkpoint;
 pub mod clean;
+pub mod config;
 pub mod curve;
 pub mod data;
 pub mod label_free;
@@ -24,6 +25,7 @@ pub mod model;
 pub mod pseudo;
 pub mod run;
 pub mod sampler;
+pub mod state;
 pub mod trainer;
 pub mod validate;
 

@@ -4,7 +4,7 @@
 use ndarray::Array2;
 
 use crate::model::TrainModel;
-use crate::trainer::{ValScores, Validator};
+use crate::state::{ValScores, Validator};
 use crossview_core::Encoder;
 use crossview_core::association::{AssociationConfig, Mode};
 use crossview_core::{Error, Result};

@@ -37,7 +37,7 @@ use crate::metrics::Metrics;
 use crate::service::Service;
 
 mod codec;
-mod config;
+pub(crate) mod config;
 mod context;
 mod offsets;
 

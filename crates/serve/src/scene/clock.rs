@@ -30,34 +30,8 @@ use crossview_core::offsets::{CameraSeries, OffsetConfig, OffsetEstimate, estima
 use crossview_core::{CameraSpec, FrameEmbeddings, SceneSpec};
 
 use super::lock;
+use crate::config::ClockWatchConfig;
 use crate::metrics::Metrics;
-
-/// Settings of the live clock watch.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct ClockWatchConfig {
-    /// Most recent frames an estimate uses (0: the watch is off).
-    pub window: usize,
-    /// At most one estimate per this interval.
-    pub interval: Duration,
-    /// Largest offset searched, in frame steps either way (bounds the work).
-    pub max_offset: u32,
-    /// Apply a camera's estimated offset once two estimates over full, successive windows
-    /// agree on it (`--auto-align`); off by default.
-    pub auto_align: bool,
-}
-
-impl Default for ClockWatchConfig {
-    /// 300 frames (chosen on the simulator: BENCHMARKS.md, "Camera clock offsets"), one
-    /// estimate per 10 s, ±10 frames searched, no auto-align.
-    fn default() -> Self {
-        ClockWatchConfig {
-            window: 300,
-            interval: Duration::from_secs(10),
-            max_offset: 10,
-            auto_align: false,
-        }
-    }
-}
 
 /// Each camera's clock offset as the synchronizer applies it now: the declared one (`@±N`),
 /// changed by `--auto-align`.

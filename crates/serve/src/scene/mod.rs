@@ -25,7 +25,6 @@ use std::time::{Duration, Instant};
 use tokio::sync::{Notify, broadcast, oneshot};
 
 use crossview_api::types::{ClockEstimate, FrameResult, SceneDescription};
-use crossview_core::association::AssociationConfig;
 use crossview_core::tracking::{Tracker, TrackerConfig};
 use crossview_core::{Detection, Encoder, Error, Frame, Result, SceneSpec};
 
@@ -40,23 +39,11 @@ mod published;
 mod validate;
 mod worker;
 
-pub use clock::ClockWatchConfig;
+pub use crate::registry::SceneInfo;
 pub use published::Published;
 
 pub(crate) use worker::Model;
 use worker::{Job, Worker};
-
-/// What a model file says about its scene: name and cameras, association settings, version.
-#[derive(Debug, Clone, PartialEq)]
-pub struct SceneInfo {
-    /// Name and cameras.
-    pub spec: SceneSpec,
-    /// Association settings (SPEC §3 threshold and alpha, identity confidence), from the
-    /// model's metadata ([`crossview_model::ModelMetadata::association_config`]).
-    pub association: AssociationConfig,
-    /// Model version string.
-    pub version: String,
-}
 
 struct Intake {
     sync: Synchronizer,
