@@ -21,10 +21,13 @@ test: setup
 bench: setup
 	cargo bench -p crossview-bench
 
-## lint: format check and clippy on every crate of the workspace, benchmark drivers included
+## lint: format check and clippy on every crate of the workspace, benchmark drivers included,
+## and the layout rules (no import circle between a crate's modules; sizes reported:
+## scripts/check_layout.py)
 lint:
 	cargo fmt --all --check
 	cargo clippy --workspace --all-targets -- -D warnings
+	python3 scripts/check_layout.py
 
 fmt:
 	cargo fmt --all
