@@ -54,6 +54,11 @@ pub(crate) fn is_grpc(req: &Request) -> bool {
 }
 
 impl ApiKeys {
+    /// [`Self::check`], counting a refusal (once, here).
+    pub(crate) fn admit(&self, req: &Request) -> Result<(), Error> {
+        self.check(req).inspect_err(|e| self.metrics.error(e))
+    }
+
     /// Accepts any of `keys` (surrounding white space trimmed); no keys = authentication off.
     /// A blank key is an error: it would otherwise turn authentication off silently.
     pub fn new(keys: &[String], metrics: Metrics) -> Result<Self, Error> {
@@ -102,25 +107,6 @@ impl ApiKeys {
             Ok(())
         } else {
             Err(Error::Unauthenticated("invalid token".into()))
-        }
-    }
-}
-
-/// The axum middleware enforcing [`ApiKeys`].
-pub(crate) async fn require_token(
-    State(keys): State<ApiKeys>,
-    req: Request,
-    next: Next,
-) -> Response {
-    match keys.check(&req) {
-        Ok(()) => next.run(req).await,
-        Err(e) => {
-            keys.metrics.error(&e);
-            if is_grpc(&req) {
-                crate::grpc::status(e).into_http::<axum::body::Body>()
-            } else {
-                crate::http::HttpError(e).into_response()
-            }
         }
     }
 }

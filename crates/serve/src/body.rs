@@ -18,7 +18,7 @@ use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use http_body_util::{BodyExt, LengthLimitError, Limited};
 
-use super::http::UncountedError;
+use super::metrics::UncountedError;
 
 /// The settings [`buffer_body`] needs.
 #[derive(Debug, Clone, Copy)]

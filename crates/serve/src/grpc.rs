@@ -36,7 +36,7 @@ pub(crate) fn status(e: Error) -> Status {
             | Error::Internal { .. }
             | Error::Training(_) => Code::Internal,
         };
-        Status::new(code, super::truncate_echo(&e.report()))
+        Status::new(code, crate::echo::truncate_echo(&e.report()))
     }
 }
 
@@ -235,7 +235,7 @@ impl GrpcService {
                             "scene",
                             format!(
                                 "this stream serves scene '{s}', got '{}'",
-                                super::truncate_echo(&b.scene)
+                                crate::echo::truncate_echo(&b.scene)
                             ),
                         ),
                     ),
@@ -348,7 +348,7 @@ impl pb::association_server::Association for GrpcService {
 
 /// A client-supplied name as echoed in an ack (bounded, see [`super::truncate_echo`]).
 fn echo(s: &str) -> String {
-    super::truncate_echo(s).into_owned()
+    crate::echo::truncate_echo(s).into_owned()
 }
 
 fn reject(b: &pb::Batch, e: Error) -> pb::BatchAck {

@@ -15,6 +15,7 @@ use axum::{Json, Router};
 use futures::StreamExt;
 use serde::de::DeserializeOwned;
 
+use super::metrics::UncountedError;
 use super::service::Service;
 use crossview_api::types::{AssociateRequest, BatchAck, EventsQuery};
 use crossview_core::Batch;
@@ -63,7 +64,7 @@ impl IntoResponse for HttpError {
             Error::InvalidArgument { field, .. } => Some(field.clone()),
             _ => None,
         };
-        let message = super::truncate_echo(&e.report()).into_owned();
+        let message = crate::echo::truncate_echo(&e.report()).into_owned();
         let body = serde_json::json!({
             "error": { "kind": e.kind(), "message": message, "field": field }
         });
@@ -77,11 +78,6 @@ impl IntoResponse for HttpError {
         resp
     }
 }
-
-/// Marks a response whose error was produced outside [`Service`] (so not yet counted);
-/// the request-accounting middleware counts it.
-#[derive(Debug, Clone, Copy)]
-pub(crate) struct UncountedError(pub &'static str);
 
 /// The media type of a request body (`Content-Type` without parameters, lower case).
 fn media_type(headers: &http::HeaderMap) -> Option<String> {
@@ -111,7 +107,7 @@ fn unsupported_media_type(got: Option<&str>, want: &str) -> Response {
         "Content-Type {} is not accepted here; send {want}",
         got.map_or_else(
             || "(none)".to_string(),
-            |g| format!("'{}'", super::truncate_echo(g))
+            |g| format!("'{}'", crate::echo::truncate_echo(g))
         )
     );
     let body = serde_json::json!({ "error": { "kind": kind, "message": message, "field": "content-type" } });
@@ -336,7 +332,7 @@ impl LineRun {
                     self.rejected += 1;
                     serde_json::json!({
                         "line": self.line_no, "accepted": false,
-                        "error": { "kind": e.kind(), "message": super::truncate_echo(&e.to_string()) },
+                        "error": { "kind": e.kind(), "message": crate::echo::truncate_echo(&e.to_string()) },
                     })
                 }
             };

@@ -1,12 +1,16 @@
 //! The streaming association service: gRPC (tonic) and HTTP JSON (axum) over one port.
 //!
-//! Layout (one job per module): [`config`] settings; [`registry`] model loading; [`sync`] the
-//! pure frame synchronizer; [`scene`] a live scene (validation, admission, the encoder worker
-//! thread, results broadcast); [`service`] the one domain API; [`grpc`] and [`http`] thin
-//! transports with the error mappings (wire types and conversions: `crossview-api`) ([`push`]: the gRPC `Push`
-//! and `Stream` calls' own request framing, so a bad message is refused alone); [`auth`], [`tls`],
-//! [`metrics`]; [`record`] the recording of accepted batches (`--record`); [`viewer`] the live
-//! viewer's web page; [`kafka`] Kafka mode (consume batches, produce results); this module binds them into one listener with graceful shutdown.
+//! Layout (one job per module; imports run down this list's layers): the domain — [`sync`]
+//! the pure frame synchronizer, [`scene`] a live scene (validation, admission, the encoder
+//! worker thread, the clock watch, results broadcast), [`registry`] model loading, [`reload`]
+//! live model swaps, [`record`] the recording of accepted batches (`--record`), [`service`] the
+//! one domain API; the transports — [`grpc`] and [`http`] with the error mappings (wire types
+//! and conversions: `crossview-api`; [`push`]: the gRPC `Push` and `Stream` calls' own request
+//! framing, so a bad message is refused alone), [`viewer`] the live viewer's web page,
+//! [`kafka`] Kafka mode (consume batches, produce results); cross-cutting — [`config`],
+//! [`auth`], [`body`], `conn`, [`tls`], [`metrics`]; `router` binds the transports and the
+//! middleware into one router, and this module runs it on one listener with graceful
+//! shutdown.
 //!
 //! Tests and the CLI start it the same way: [`Server::load`] (or [`run`]) then
 //! [`Server::serve`] on a bound listener with a shutdown future.
@@ -16,6 +20,7 @@ pub mod body;
 pub mod config;
 pub(crate) mod conn;
 pub mod cost;
+mod echo;
 pub mod grpc;
 pub mod http;
 pub mod kafka;
@@ -24,6 +29,7 @@ pub mod push;
 pub mod record;
 pub mod registry;
 pub mod reload;
+mod router;
 pub mod scene;
 pub mod service;
 pub(crate) mod subscribers;
@@ -31,15 +37,12 @@ pub mod sync;
 pub mod tls;
 pub mod viewer;
 
-use std::borrow::Cow;
 use std::future::Future;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use axum::Router;
-use axum::extract::{MatchedPath, Request, State};
-use axum::middleware::{self, Next};
-use axum::response::{IntoResponse, Response};
+use axum::extract::Request;
 use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
 use hyper_util::server::conn::auto;
 use hyper_util::service::TowerToHyperService;
@@ -55,23 +58,6 @@ pub use service::Service;
 
 use crossview_core::Encoder;
 use crossview_core::{Error, Result};
-
-/// Longest error message (in bytes) sent back to a client: messages echo client input
-/// (camera and scene names, JSON decoding errors), which must not come back unbounded.
-pub(crate) const MAX_ERROR_MESSAGE: usize = 512;
-
-/// `text` cut to at most [`MAX_ERROR_MESSAGE`] bytes (at a character boundary), saying how
-/// long it was.
-pub(crate) fn truncate_echo(text: &str) -> Cow<'_, str> {
-    if text.len() <= MAX_ERROR_MESSAGE {
-        return Cow::Borrowed(text);
-    }
-    let mut end = MAX_ERROR_MESSAGE;
-    while !text.is_char_boundary(end) {
-        end -= 1;
-    }
-    Cow::Owned(format!("{}… ({} bytes in all)", &text[..end], text.len()))
-}
 
 /// A configured server with its scenes started, ready to [`serve`](Server::serve).
 #[derive(Debug)]
@@ -188,7 +174,7 @@ impl Server {
 
     /// The combined gRPC + HTTP router with auth and request accounting.
     pub(crate) async fn router(&self) -> Result<Router> {
-        build_router(&self.service, &self.config).await
+        router::build_router(&self.service, &self.config).await
     }
 
     /// Serves gRPC and HTTP on `listener` until `shutdown` resolves, then shuts down gracefully:
@@ -442,157 +428,4 @@ fn spawn_timer(scene: Arc<Scene>, stop: impl Future<Output = ()> + Send + 'stati
             }
         }
     });
-}
-
-/// A tonic service mounted on an axum path prefix; each request body is bounded per message
-/// by `body_timeout` ([`body::GrpcMessageDeadline`]).
-fn grpc_route<S>(router: Router, svc: S, body_timeout: Duration) -> Router
-where
-    S: tower::Service<::http::Request<tonic::body::Body>, Error = std::convert::Infallible>
-        + tonic::server::NamedService
-        + Clone
-        + Send
-        + Sync
-        + 'static,
-    S::Response: IntoResponse,
-    S::Future: Send + 'static,
-{
-    router.route_service(
-        &format!("/{}/{{*rest}}", S::NAME),
-        svc.map_request(move |r: Request| {
-            r.map(|b| tonic::body::Body::new(body::GrpcMessageDeadline::new(b, body_timeout)))
-        }),
-    )
-}
-
-async fn fallback(req: Request) -> Response {
-    if auth::is_grpc(&req) {
-        tonic::Status::unimplemented(format!("no such method {}", req.uri().path()))
-            .into_http::<axum::body::Body>()
-    } else {
-        (::http::StatusCode::NOT_FOUND, "not found").into_response()
-    }
-}
-
-async fn build_router(svc: &Arc<Service>, config: &ServeConfig) -> Result<Router> {
-    use crossview_api::pb;
-    use pb::association_server::AssociationServer;
-    let limit = config.limits.max_request_bytes;
-    let (reporter, health) = tonic_health::server::health_reporter();
-    // The reporter starts with "" = SERVING; mark the service itself too.
-    reporter
-        .set_serving::<AssociationServer<grpc::GrpcService>>()
-        .await;
-    let reflection = tonic_reflection::server::Builder::configure()
-        .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
-        .build_v1()
-        .map_err(|e| Error::internal_from("cannot build the gRPC reflection service", e))?;
-    let grpc = grpc::GrpcService::new(svc.clone(), config.connections.subscriber_stall_timeout);
-    let generated = AssociationServer::new(grpc.clone())
-        .max_decoding_message_size(limit)
-        .max_encoding_message_size(usize::MAX);
-    let association = push::Routes::new(generated, grpc, limit);
-    let mut router = Router::new();
-    let body_timeout = config.connections.body_timeout;
-    router = grpc_route(router, association, body_timeout);
-    router = grpc_route(router, health, body_timeout);
-    router = grpc_route(router, reflection, body_timeout);
-    let body_limits = body::BodyLimits {
-        max_bytes: limit,
-        timeout: body_timeout,
-    };
-    let keys = auth::ApiKeys::new(&config.api_keys, svc.metrics().clone())?;
-    Ok(router
-        .merge(
-            http::router(svc.clone(), limit).layer(middleware::from_fn_with_state(
-                body_limits,
-                body::buffer_body,
-            )),
-        )
-        .fallback(fallback)
-        .layer(middleware::from_fn_with_state(keys, auth::require_token))
-        .layer(middleware::from_fn_with_state(
-            svc.metrics().clone(),
-            auth::same_origin,
-        ))
-        .layer(middleware::from_fn_with_state(
-            svc.metrics().clone(),
-            track_requests,
-        )))
-}
-
-/// Counts every request by transport, route and outcome, and times it to the response head.
-async fn track_requests(State(m): State<metrics::Metrics>, req: Request, next: Next) -> Response {
-    let grpc = auth::is_grpc(&req);
-    let method = request_label(&req, grpc);
-    let t = Instant::now();
-    let resp = next.run(req).await;
-    let status = if grpc {
-        // Server-made, but parsed into the closed set of gRPC codes all the same.
-        let code = resp
-            .headers()
-            .get("grpc-status")
-            .and_then(|v| v.to_str().ok())
-            .map_or(Some(0), |v| v.parse::<u8>().ok().filter(|c| *c <= 16));
-        code.map_or_else(|| "other".to_string(), |c| c.to_string())
-    } else {
-        resp.status().as_u16().to_string()
-    };
-    if let Some(http::UncountedError(kind)) = resp.extensions().get() {
-        m.error_kind(kind);
-    }
-    let transport = if grpc { "grpc" } else { "http" };
-    m.request(transport, &method, &status, t.elapsed());
-    resp
-}
-
-/// The gRPC methods this server serves: the only gRPC label values besides `other`.
-const GRPC_METHODS: &[&str] = &[
-    "/crossview.v1.Association/Associate",
-    "/crossview.v1.Association/Push",
-    "/crossview.v1.Association/Subscribe",
-    "/crossview.v1.Association/Stream",
-    "/crossview.v1.Association/ListScenes",
-    "/crossview.v1.Association/GetScene",
-    "/crossview.v1.Association/Reload",
-    "/grpc.health.v1.Health/Check",
-    "/grpc.health.v1.Health/Watch",
-    "/grpc.reflection.v1.ServerReflection/ServerReflectionInfo",
-];
-
-/// The `method` label of a request, from a closed set: a known gRPC method path or `other`;
-/// for HTTP a standard verb (else `OTHER`) and the matched route template, or `unmatched`.
-fn request_label(req: &Request, grpc: bool) -> String {
-    if grpc {
-        let path = req.uri().path();
-        return GRPC_METHODS
-            .iter()
-            .find(|m| **m == path)
-            .map_or("other", |m| m)
-            .to_string();
-    }
-    match req.extensions().get::<MatchedPath>() {
-        Some(p) => {
-            let verb = match req.method().as_str() {
-                v @ ("GET" | "POST" | "HEAD" | "PUT" | "DELETE" | "PATCH" | "OPTIONS") => v,
-                _ => "OTHER",
-            };
-            format!("{verb} {}", p.as_str())
-        }
-        None => "unmatched".to_string(),
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn echoed_text_is_truncated_at_a_char_boundary() {
-        assert_eq!(truncate_echo("short"), "short");
-        let long = "é".repeat(1000);
-        let t = truncate_echo(&long);
-        assert!(t.len() < MAX_ERROR_MESSAGE + 40, "{}", t.len());
-        assert!(t.ends_with("(2000 bytes in all)"), "{t}");
-    }
 }

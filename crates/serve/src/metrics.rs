@@ -14,6 +14,11 @@ const BUCKETS: &[f64] = &[
 static META: Metadata<'static> =
     Metadata::new(module_path!(), metrics::Level::INFO, Some(module_path!()));
 
+/// Marks a response whose error was produced outside the service (so not yet counted); the
+/// request-accounting middleware counts it.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct UncountedError(pub &'static str);
+
 /// Counters, gauges and histograms of the service, rendered at `/metrics`.
 #[derive(Clone)]
 pub struct Metrics {

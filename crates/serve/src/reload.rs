@@ -110,7 +110,7 @@ enum Read {
     /// Its bytes are those of the model serving now.
     Unchanged,
     /// Different bytes, loaded (or refused).
-    Loaded(Result<(crate::SceneInfo, Box<dyn crossview_core::Encoder>)>),
+    Loaded(Result<(crate::registry::SceneInfo, Box<dyn crossview_core::Encoder>)>),
 }
 
 fn refused(spec: &ModelSpec, version: Option<String>, e: &Error) -> ReloadOutcome {
@@ -118,7 +118,7 @@ fn refused(spec: &ModelSpec, version: Option<String>, e: &Error) -> ReloadOutcom
         scene: spec.name.clone(),
         outcome: "refused".to_string(),
         version,
-        error: Some(crate::truncate_echo(&e.report()).into_owned()),
+        error: Some(crate::echo::truncate_echo(&e.report()).into_owned()),
     }
 }
 

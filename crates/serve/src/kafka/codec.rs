@@ -23,7 +23,7 @@ pub(super) fn content_type<M: Message>(msg: &M) -> Option<Result<ValueFormat>> {
             "content-type",
             format!(
                 "'{}' is not application/json or application/x-protobuf",
-                crate::truncate_echo(&String::from_utf8_lossy(v))
+                crate::echo::truncate_echo(&String::from_utf8_lossy(v))
             ),
         )
     }))
@@ -55,8 +55,8 @@ pub(super) fn decode(
                     "scene",
                     format!(
                         "the batch names scene '{}' but the record key is '{}'",
-                        crate::truncate_echo(&pb.scene),
-                        crate::truncate_echo(&scene)
+                        crate::echo::truncate_echo(&pb.scene),
+                        crate::echo::truncate_echo(&scene)
                     ),
                 ));
             }

@@ -80,7 +80,7 @@ impl KafkaConfig {
             Some((k, v)) if !k.trim().is_empty() => Ok((k.trim().into(), v.into())),
             _ => Err(Error::invalid(
                 "--kafka-property",
-                format!("'{}' is not KEY=VALUE", crate::truncate_echo(s)),
+                format!("'{}' is not KEY=VALUE", crate::echo::truncate_echo(s)),
             )),
         }
     }
