@@ -208,21 +208,7 @@ impl Server {
         let limits = self.config.connections;
         let connections = conn::Connections::new(limits, self.service.metrics().clone());
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-        let mut builder = auto::Builder::new(TokioExecutor::new());
-        // Encoded results a stream that is not read may hold in the transport are bounded
-        // (subscribers::TRANSPORT_BUFFER): the subscriber budget charges each stream for it.
-        builder
-            .http1()
-            .timer(TokioTimer::new())
-            .max_buf_size(subscribers::TRANSPORT_BUFFER)
-            .header_read_timeout(limits.header_read_timeout);
-        builder
-            .http2()
-            .timer(TokioTimer::new())
-            .max_send_buf_size(subscribers::TRANSPORT_BUFFER)
-            .max_concurrent_streams(limits.http2_max_streams)
-            .keep_alive_interval(limits.http2_keepalive)
-            .keep_alive_timeout(limits.http2_keepalive);
+        let builder = connection_builder(&limits);
         tokio::pin!(shutdown);
         let mut refused_logged: Option<Instant> = None;
         loop {
@@ -246,61 +232,28 @@ impl Server {
                 drop(stream);
                 continue;
             };
-            let _ = stream.set_nodelay(true);
-            let state = guard.state.clone();
-            let router = router.clone();
-            let svc = TowerToHyperService::new(tower::service_fn(
-                move |r: Request<hyper::body::Incoming>| {
-                    let active = state.begin();
-                    let mut r = r.map(axum::body::Body::new);
-                    r.extensions_mut().insert(conn::ConnHandle(state.clone()));
-                    let router = router.clone();
-                    async move {
-                        let resp = router.oneshot(r).await?;
-                        Ok::<_, std::convert::Infallible>(
-                            resp.map(|b| axum::body::Body::new(conn::Tracked::new(b, active))),
-                        )
-                    }
-                },
-            ));
-            let builder = builder.clone();
-            let tls = tls.clone();
-            let stop = stop_rx.clone();
-            tokio::spawn(async move {
-                let state = guard.state.clone();
-                let r = match tls {
-                    Some(acc) => {
-                        match tokio::time::timeout(limits.header_read_timeout, acc.accept(stream))
-                            .await
-                        {
-                            Ok(Ok(s)) => {
-                                let conn =
-                                    builder.serve_connection_with_upgrades(TokioIo::new(s), svc);
-                                conn::drive(conn.into_owned(), state, limits, stop).await
-                            }
-                            Ok(Err(e)) => {
-                                tracing::debug!(%peer, error = %e, "TLS handshake failed");
-                                return;
-                            }
-                            Err(_) => {
-                                tracing::debug!(%peer, "TLS handshake timed out");
-                                return;
-                            }
-                        }
-                    }
-                    None => {
-                        let conn =
-                            builder.serve_connection_with_upgrades(TokioIo::new(stream), svc);
-                        conn::drive(conn.into_owned(), state, limits, stop).await
-                    }
-                };
-                if let Err(e) = r {
-                    tracing::debug!(%peer, error = %e, "connection ended with error");
-                }
-                drop(guard);
-            });
+            let connection = Connection {
+                router: router.clone(),
+                builder: builder.clone(),
+                tls: tls.clone(),
+                limits,
+                stop: stop_rx.clone(),
+            };
+            connection.spawn(stream, peer, guard);
         }
         drop(listener);
+        self.shut_down(kafka, &connections, stop_tx).await
+    }
+
+    /// Graceful shutdown once the listener is closed: stops intake and flushes pending frames
+    /// (and the recording queue), lets Kafka produce the flushed results, then closes the
+    /// connections, dropping those still open after the grace period.
+    async fn shut_down(
+        &self,
+        kafka: Option<tokio::task::JoinHandle<()>>,
+        connections: &conn::Connections,
+        stop_tx: tokio::sync::watch::Sender<bool>,
+    ) -> Result<()> {
         let deadline = Instant::now() + self.config.shutdown_grace;
         tracing::info!("shutdown: stopping intake and flushing pending frames");
         let service = self.service.clone();
@@ -335,6 +288,100 @@ impl Server {
             connections.kill_all();
         }
         Ok(())
+    }
+}
+
+/// The HTTP/1 + HTTP/2 connection builder with the connection limits. Encoded results a
+/// stream that is not read may hold in the transport are bounded
+/// (`subscribers::TRANSPORT_BUFFER`): the subscriber budget charges each stream for it.
+fn connection_builder(limits: &ConnectionLimits) -> auto::Builder<TokioExecutor> {
+    let mut builder = auto::Builder::new(TokioExecutor::new());
+    builder
+        .http1()
+        .timer(TokioTimer::new())
+        .max_buf_size(subscribers::TRANSPORT_BUFFER)
+        .header_read_timeout(limits.header_read_timeout);
+    builder
+        .http2()
+        .timer(TokioTimer::new())
+        .max_send_buf_size(subscribers::TRANSPORT_BUFFER)
+        .max_concurrent_streams(limits.http2_max_streams)
+        .keep_alive_interval(limits.http2_keepalive)
+        .keep_alive_timeout(limits.http2_keepalive);
+    builder
+}
+
+/// What serving one accepted connection needs.
+struct Connection {
+    router: Router,
+    builder: auto::Builder<TokioExecutor>,
+    tls: Option<tokio_rustls::TlsAcceptor>,
+    limits: ConnectionLimits,
+    stop: tokio::sync::watch::Receiver<bool>,
+}
+
+impl Connection {
+    /// Serves `stream` on its own task (TLS handshake first when configured) until it ends or
+    /// the server stops; `guard` holds its slot under the connection cap.
+    fn spawn(
+        self,
+        stream: tokio::net::TcpStream,
+        peer: std::net::SocketAddr,
+        guard: conn::ConnGuard,
+    ) {
+        let Connection {
+            router,
+            builder,
+            tls,
+            limits,
+            stop,
+        } = self;
+        let _ = stream.set_nodelay(true);
+        let state = guard.state.clone();
+        let svc = TowerToHyperService::new(tower::service_fn(
+            move |r: Request<hyper::body::Incoming>| {
+                let active = state.begin();
+                let mut r = r.map(axum::body::Body::new);
+                r.extensions_mut().insert(conn::ConnHandle(state.clone()));
+                let router = router.clone();
+                async move {
+                    let resp = router.oneshot(r).await?;
+                    Ok::<_, std::convert::Infallible>(
+                        resp.map(|b| axum::body::Body::new(conn::Tracked::new(b, active))),
+                    )
+                }
+            },
+        ));
+        tokio::spawn(async move {
+            let state = guard.state.clone();
+            let r = match tls {
+                Some(acc) => {
+                    match tokio::time::timeout(limits.header_read_timeout, acc.accept(stream)).await
+                    {
+                        Ok(Ok(s)) => {
+                            let conn = builder.serve_connection_with_upgrades(TokioIo::new(s), svc);
+                            conn::drive(conn.into_owned(), state, limits, stop).await
+                        }
+                        Ok(Err(e)) => {
+                            tracing::debug!(%peer, error = %e, "TLS handshake failed");
+                            return;
+                        }
+                        Err(_) => {
+                            tracing::debug!(%peer, "TLS handshake timed out");
+                            return;
+                        }
+                    }
+                }
+                None => {
+                    let conn = builder.serve_connection_with_upgrades(TokioIo::new(stream), svc);
+                    conn::drive(conn.into_owned(), state, limits, stop).await
+                }
+            };
+            if let Err(e) = r {
+                tracing::debug!(%peer, error = %e, "connection ended with error");
+            }
+            drop(guard);
+        });
     }
 }
 
