@@ -190,29 +190,7 @@ pub struct Args {
     pub kafka_property: Vec<String>,
 }
 
-/// Parses `1.5s`, `250ms`, `2m`, `1h` or a bare number of seconds.
-pub fn parse_duration(s: &str) -> Result<Duration, String> {
-    let s = s.trim();
-    let (num, unit) = match s.find(|c: char| c.is_ascii_alphabetic()) {
-        Some(i) => (&s[..i], &s[i..]),
-        None => (s, "s"),
-    };
-    let v: f64 = num
-        .trim()
-        .parse()
-        .map_err(|_| format!("'{s}' is not a duration (e.g. 30s, 500ms, 2m)"))?;
-    let secs = match unit {
-        "ms" => v / 1e3,
-        "s" => v,
-        "m" | "min" => v * 60.0,
-        "h" => v * 3600.0,
-        _ => return Err(format!("'{s}': unknown unit '{unit}' (ms, s, m, h)")),
-    };
-    if !secs.is_finite() || secs < 0.0 {
-        return Err(format!("'{s}' must be a non-negative duration"));
-    }
-    Ok(Duration::from_secs_f64(secs))
-}
+pub use crossview_api::duration::parse_duration;
 
 impl Args {
     /// Checks option combinations that clap cannot.
@@ -279,7 +257,7 @@ mod tests {
         assert_eq!(parse_duration("30s").unwrap(), Duration::from_secs(30));
         assert_eq!(parse_duration("250ms").unwrap(), Duration::from_millis(250));
         assert_eq!(parse_duration("2m").unwrap(), Duration::from_secs(120));
-        assert_eq!(parse_duration("1.5").unwrap(), Duration::from_millis(1500));
+        assert!(parse_duration("1.5").is_err(), "a bare number needs a unit");
         assert!(parse_duration("-1s").is_err());
         assert!(parse_duration("3 parsecs").is_err());
     }

@@ -289,27 +289,7 @@ impl KafkaArgs {
     }
 }
 
-/// Parses `250ms`, `2s`, `1.5s`, `10m` or a bare number of milliseconds.
-pub fn parse_duration(s: &str) -> Result<Duration, String> {
-    let s = s.trim();
-    let (num, scale) = if let Some(v) = s.strip_suffix("ms") {
-        (v, 1e-3)
-    } else if let Some(v) = s.strip_suffix('s') {
-        (v, 1.0)
-    } else if let Some(v) = s.strip_suffix('m') {
-        (v, 60.0)
-    } else {
-        (s, 1e-3)
-    };
-    let v: f64 = num
-        .trim()
-        .parse()
-        .map_err(|_| format!("'{s}' is not a duration (e.g. 200ms, 1.5s)"))?;
-    if !v.is_finite() || v < 0.0 || v * scale > 86_400.0 {
-        return Err(format!("'{s}' is out of range"));
-    }
-    Ok(Duration::from_secs_f64(v * scale))
-}
+pub use crossview_api::duration::parse_duration;
 
 /// Longest API key file read (a file of keys is a few KiB).
 const MAX_KEY_FILE_BYTES: u64 = 1 << 20;
@@ -503,15 +483,5 @@ mod tests {
             assert!(parse(&["--clock-watch-max-offset", bad]).is_err(), "{bad}");
         }
         assert!(parse(&["--clock-watch-window", "10001"]).is_err());
-    }
-
-    #[test]
-    fn durations_parse() {
-        assert_eq!(parse_duration("200ms"), Ok(Duration::from_millis(200)));
-        assert_eq!(parse_duration("1.5s"), Ok(Duration::from_millis(1500)));
-        assert_eq!(parse_duration("50"), Ok(Duration::from_millis(50)));
-        assert_eq!(parse_duration("2m"), Ok(Duration::from_secs(120)));
-        assert!(parse_duration("-1s").is_err());
-        assert!(parse_duration("soon").is_err());
     }
 }

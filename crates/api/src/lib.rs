@@ -4,6 +4,7 @@
 //! and the load generator all speak through this crate.
 
 pub mod convert;
+pub mod duration;
 pub mod format;
 pub mod types;
 

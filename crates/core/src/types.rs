@@ -231,6 +231,22 @@ impl Detection {
     }
 }
 
+/// A recording's first line, `{"scene": {...}}` (SPEC §7), borrowed for writing: the one
+/// definition of the line every writer uses.
+#[derive(Debug, Serialize)]
+pub struct HeaderLine<'a> {
+    pub scene: &'a SceneSpec,
+}
+
+/// One batch line of a recording (SPEC §7): the JSON of a [`Batch`], borrowed for writing
+/// without cloning the detections.
+#[derive(Debug, Serialize)]
+pub struct BatchLine<'a> {
+    pub camera: &'a str,
+    pub frame_id: u64,
+    pub detections: &'a [Detection],
+}
+
 /// One camera's detections for one frame: a line of a recording, or one pushed batch.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Batch {

@@ -37,6 +37,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+use crossview_core::types::{BatchLine, HeaderLine};
 use crossview_core::{Batch, CameraSpec, Detection, Frame, SceneSpec};
 use crossview_core::{Error, Result};
 
@@ -52,20 +53,6 @@ pub struct Recording {
 #[derive(Debug, Serialize, Deserialize)]
 struct Header {
     scene: SceneSpec,
-}
-
-/// Borrowed form of [`Header`] for writing without cloning the scene.
-#[derive(Serialize)]
-struct HeaderRef<'a> {
-    scene: &'a SceneSpec,
-}
-
-/// Borrowed form of [`Batch`] for writing a frame's view without cloning its detections.
-#[derive(Serialize)]
-struct BatchRef<'a> {
-    camera: &'a str,
-    frame_id: u64,
-    detections: &'a [Detection],
 }
 
 /// Checks a scene is usable: a name, at least one camera, unique camera names, positive sizes.
@@ -793,7 +780,7 @@ impl<W: Write> RecordingWriter<W> {
             writer: BufWriter::new(writer),
             scene: scene.clone(),
         };
-        this.write_json(&HeaderRef { scene })?;
+        this.write_json(&HeaderLine { scene })?;
         Ok(this)
     }
 
@@ -837,7 +824,7 @@ impl<W: Write> RecordingWriter<W> {
                             format!("plus camera '{camera}''s clock offset is out of range"),
                         )
                     })?;
-                self.write_json(&BatchRef {
+                self.write_json(&BatchLine {
                     camera: &camera,
                     frame_id,
                     detections: dets,

@@ -71,7 +71,7 @@ impl ConnState {
     }
 
     fn idle_since(&self) -> Instant {
-        *self.idle_since.lock().unwrap_or_else(|e| e.into_inner())
+        *crate::locks::lock(&self.idle_since)
     }
 
     /// Marks a request in flight until the returned guard drops.
@@ -101,7 +101,7 @@ pub(crate) struct ActiveGuard(Arc<ConnState>);
 impl Drop for ActiveGuard {
     fn drop(&mut self) {
         if self.0.active.fetch_sub(1, Ordering::AcqRel) == 1 {
-            *self.0.idle_since.lock().unwrap_or_else(|e| e.into_inner()) = Instant::now();
+            *crate::locks::lock(&self.0.idle_since) = Instant::now();
             self.0.became_idle.notify_one();
         }
     }
@@ -170,7 +170,7 @@ impl Connections {
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<u64, Arc<ConnState>>> {
-        self.open.lock().unwrap_or_else(|e| e.into_inner())
+        crate::locks::lock(&self.open)
     }
 
     /// Registers a new connection, evicting the longest-idle one at the cap; `None` when the

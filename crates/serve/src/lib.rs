@@ -24,6 +24,7 @@ mod echo;
 pub mod grpc;
 pub mod http;
 pub mod kafka;
+mod locks;
 pub mod metrics;
 pub mod push;
 pub mod record;

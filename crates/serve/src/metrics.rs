@@ -225,10 +225,7 @@ impl Metrics {
     /// Consumer lag of an owned input partition (librdkafka's statistics: high watermark
     /// minus the consumer's position).
     pub(crate) fn kafka_lag(&self, topic: &str, partition: i32, lag: i64) {
-        self.hidden
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .remove(&lag_series(topic, partition));
+        crate::locks::lock(&self.hidden).remove(&lag_series(topic, partition));
         let p = partition.to_string();
         self.recorder
             .register_gauge(
@@ -254,10 +251,7 @@ impl Metrics {
     /// The lag gauge of an input partition this replica no longer owns: no longer exported.
     pub(crate) fn kafka_lag_forget(&self, topic: &str, partition: i32) {
         let line = lag_series(topic, partition);
-        self.hidden
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert(line);
+        crate::locks::lock(&self.hidden).insert(line);
     }
 
     /// One input record read again after a rebalance whose frame was already produced
@@ -369,7 +363,7 @@ impl Metrics {
     pub fn render(&self) -> String {
         self.handle.run_upkeep();
         let text = self.handle.render();
-        let hidden = self.hidden.lock().unwrap_or_else(|e| e.into_inner());
+        let hidden = crate::locks::lock(&self.hidden);
         if hidden.is_empty() {
             return text;
         }

@@ -157,7 +157,7 @@ impl Subscribers {
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Registry> {
-        self.registry.lock().unwrap_or_else(|e| e.into_inner())
+        crate::locks::lock(&self.registry)
     }
 
     /// Admits a subscriber of `scene` on `conn` (whose stream counts taken results in

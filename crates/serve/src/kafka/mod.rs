@@ -22,7 +22,7 @@
 //! (`crossview_kafka_redelivered_total`), never dead-lettered. Module map: [`config`] the
 //! settings, [`offsets`] the ownership bookkeeping, [`context`] the rebalance callbacks,
 //! [`codec`] record values; this module runs the consume loop and the producers.
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use futures::StreamExt;
@@ -52,9 +52,7 @@ fn now_ms() -> u64 {
         .map_or(0, |d| d.as_millis() as u64)
 }
 
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
-}
+use crate::locks::lock;
 
 /// A running Kafka mode: consumer, producer and the shared offsets.
 struct Kafka {

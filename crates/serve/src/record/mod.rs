@@ -193,9 +193,7 @@ impl Recorder {
     }
 }
 
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
-}
+use crate::locks::lock;
 
 /// Memory a queued batch holds (an estimate, for the queue bound).
 fn batch_cost(camera: &str, detections: &[Detection]) -> usize {

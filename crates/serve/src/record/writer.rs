@@ -10,25 +10,10 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::mpsc::{Receiver, TryRecvError};
 use std::time::{Duration, Instant};
 
-use serde::Serialize;
-
 use super::{Msg, RecordConfig, WRITE_CHUNK};
 use crate::metrics::Metrics;
+use crossview_core::types::{BatchLine, HeaderLine};
 use crossview_core::{Detection, Error, Result, SceneSpec};
-
-/// The header line of a recording file.
-#[derive(Serialize)]
-struct HeaderRef<'a> {
-    scene: &'a SceneSpec,
-}
-
-/// One batch line.
-#[derive(Serialize)]
-struct BatchRef<'a> {
-    camera: &'a str,
-    frame_id: u64,
-    detections: &'a [Detection],
-}
 
 /// A recording file under `DIR`.
 #[derive(Debug)]
@@ -157,7 +142,7 @@ impl Writer {
             }
             let sdir = dir.join(&spec.name);
             std::fs::create_dir_all(&sdir).map_err(|e| io_err(&sdir, e))?;
-            let mut header = serde_json::to_vec(&HeaderRef { scene: spec })
+            let mut header = serde_json::to_vec(&HeaderLine { scene: spec })
                 .map_err(|e| Error::internal_from("cannot serialize the scene header", e))?;
             header.push(b'\n');
             states.push(SceneState {
@@ -258,7 +243,7 @@ impl Writer {
     /// Writes one batch line of scene `s` (rotating and making room first).
     fn write(&mut self, s: usize, camera: &str, frame_id: u64, detections: &[Detection]) {
         self.line.clear();
-        let batch = BatchRef {
+        let batch = BatchLine {
             camera,
             frame_id,
             detections,

@@ -19,7 +19,7 @@
 //! entirely outside it are refused. The scene's appearance length is fixed by the first
 //! *accepted* batch carrying appearance vectors.
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use tokio::sync::{Notify, broadcast, oneshot};
@@ -90,9 +90,7 @@ impl std::fmt::Debug for Scene {
     }
 }
 
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
-}
+use crate::locks::lock;
 
 impl Scene {
     /// Starts scene `spec`: its worker thread takes ownership of the model (`None`: a scene
