@@ -7,10 +7,7 @@ use clap::{Args, Subcommand};
 use crossview_core::SceneSpec;
 use crossview_data::recording::RecordingReader;
 use crossview_model::metadata::KEY_SCENE;
-use crossview_model::onnx::DimensionValue;
-use crossview_model::{
-    EncoderConfig, EncoderWeights, ModelMetadata, OnnxEncoder, export, runtime, write_onnx,
-};
+use crossview_model::{EncoderConfig, EncoderWeights, ModelMetadata, export, write_onnx};
 use crossview_train::clean::BoxFilter;
 
 /// Model file tools.
@@ -188,35 +185,11 @@ fn init(a: InitArgs) -> anyhow::Result<()> {
 }
 
 fn info(a: InfoArgs) -> anyhow::Result<()> {
-    let name = a.model.display().to_string();
-    let bytes = export::read_model_file(&a.model)?;
-    let model = export::decode_model(&name, &bytes)?;
-    let meta = export::model_metadata(&name, &model)?;
-    let dim = runtime::check_contract(&model, meta.cameras.len())
-        .map_err(|reason| crossview_core::Error::model(&name, reason))?;
-    let graph = model.graph.as_ref().expect("decode_model checks the graph");
-    println!("model:     {name}");
-    println!(
-        "producer:  {} {} (IR {}, opsets {})",
-        model.producer_name,
-        model.producer_version,
-        model.ir_version,
-        model
-            .opset_import
-            .iter()
-            .map(|o| format!(
-                "{}:{}",
-                if o.domain.is_empty() {
-                    "ai.onnx"
-                } else {
-                    &o.domain
-                },
-                o.version
-            ))
-            .collect::<Vec<_>>()
-            .join(",")
-    );
-    println!("width G:   {dim}");
+    let m = crossview_model::inspect::inspect(&a.model)?;
+    let meta = &m.metadata;
+    println!("model:     {}", a.model.display());
+    println!("producer:  {}", m.producer);
+    println!("width G:   {}", m.dim);
     println!("version:   {}", meta.version);
     println!("threshold: {}", meta.threshold);
     println!("alpha:     {}", meta.alpha);
@@ -236,52 +209,13 @@ fn info(a: InfoArgs) -> anyhow::Result<()> {
     for (k, v) in &meta.extra {
         println!("{k} = {v}");
     }
-    let inits: std::collections::HashSet<&str> =
-        graph.initializer.iter().map(|t| t.name.as_str()).collect();
-    let describe = |v: &crossview_model::onnx::ValueInfoProto| {
-        let t = v.r#type.as_ref().and_then(|t| t.tensor_type.as_ref());
-        let dims = t
-            .and_then(|t| t.shape.as_ref())
-            .map(|s| {
-                s.dim
-                    .iter()
-                    .map(|d| match &d.value {
-                        Some(DimensionValue::DimValue(n)) => n.to_string(),
-                        Some(DimensionValue::DimParam(p)) => p.clone(),
-                        None => "?".into(),
-                    })
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            })
-            .unwrap_or_default();
-        let ty = match t.map(|t| t.elem_type) {
-            Some(1) => "float32".to_string(),
-            Some(7) => "int64".to_string(),
-            other => format!("type {other:?}"),
-        };
-        format!("{} {ty} [{dims}]", v.name)
-    };
-    for v in graph
-        .input
-        .iter()
-        .filter(|v| !inits.contains(v.name.as_str()))
-    {
-        println!("input:     {}", describe(v));
+    for v in &m.inputs {
+        println!("input:     {v}");
     }
-    for v in &graph.output {
-        println!("output:    {}", describe(v));
+    for v in &m.outputs {
+        println!("output:    {v}");
     }
-    let params: usize = graph
-        .initializer
-        .iter()
-        .map(|t| t.dims.iter().product::<i64>().max(0) as usize)
-        .sum();
-    println!("nodes:     {}, parameters: {params}", graph.node.len());
-    // Also confirm ONNX Runtime accepts it.
-    let enc = OnnxEncoder::from_bytes(&name, &bytes)?;
-    println!(
-        "onnxruntime: loaded (dim {})",
-        crossview_core::Encoder::dim(&enc)
-    );
+    println!("nodes:     {}, parameters: {}", m.nodes, m.parameters);
+    println!("onnxruntime: loaded (dim {})", m.runtime_dim);
     Ok(())
 }

@@ -2,6 +2,7 @@
 //! ONNX Runtime encoder used for inference.
 
 pub mod export;
+pub mod inspect;
 pub mod metadata;
 pub mod onnx;
 pub mod runtime;
