@@ -268,7 +268,10 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     if let Some(t) = args.threads {
         // candle reads RAYON_NUM_THREADS when it first sizes its thread pool.
         // SAFETY: set before any worker thread exists.
-        unsafe { std::env::set_var("RAYON_NUM_THREADS", t.max(1).to_string()) };
+        #[allow(unsafe_code)]
+        unsafe {
+            std::env::set_var("RAYON_NUM_THREADS", t.max(1).to_string())
+        };
     }
     if !(0.0..=1.0).contains(&args.threshold)
         || !(0.0..=1.0).contains(&args.alpha)

@@ -195,6 +195,7 @@ fn gram_block(
     // SAFETY: with the asserts above, every element gemm reads (rows `a` and `b` of `flat`,
     // `dim` values each) and writes (`m` rows of `n` values, row stride `ld`, in `out`) is in
     // bounds; `out` is borrowed mutably, so it aliases neither input.
+    #[allow(unsafe_code)]
     unsafe {
         gemm::gemm(
             m,
