@@ -142,13 +142,16 @@ impl Server {
                     tracing::info!(scene = %spec.name, cameras = spec.cameras.len(), "scene declared without a model: frames are published unassociated")
                 }
             }
+            let options = scene::SceneOptions {
+                sync_timeout: config.sync_timeout,
+                max_pending_frames: config.max_pending_frames,
+                limits: config.limits,
+                tracker: config.tracker.clone(),
+            };
             started.push(Scene::start(
                 spec,
                 model,
-                config.sync_timeout,
-                config.max_pending_frames,
-                config.limits,
-                config.tracker.clone(),
+                options,
                 metrics.clone(),
                 recorder.as_ref().map(|r| r.scene(k)),
             )?);

@@ -45,6 +45,20 @@ pub use published::Published;
 pub(crate) use worker::Model;
 use worker::{Job, Worker};
 
+/// A scene's settings, from the server configuration (a new one goes here, and in
+/// [`crate::config::ServeConfig`] or [`Limits`] where the operator sets it).
+#[derive(Debug, Clone)]
+pub struct SceneOptions {
+    /// A frame waits this long for missing cameras (`--sync-timeout`).
+    pub sync_timeout: Duration,
+    /// Frames waiting for cameras at most (`--max-pending-frames`).
+    pub max_pending_frames: usize,
+    /// Size, cost, queue and clock-watch limits.
+    pub limits: Limits,
+    /// Track ids over time (`None`: off).
+    pub tracker: Option<TrackerConfig>,
+}
+
 struct Intake {
     sync: Synchronizer,
     jobs: Option<std::sync::mpsc::Sender<Job>>,
@@ -96,17 +110,19 @@ impl Scene {
     /// Starts scene `spec`: its worker thread takes ownership of the model (`None`: a scene
     /// declared by its cameras, published unassociated until a model is swapped in). With
     /// `recorder`, every accepted batch is also recorded ([`crate::record`]).
-    #[allow(clippy::too_many_arguments)]
     pub fn start(
         spec: SceneSpec,
         model: Option<(SceneInfo, Box<dyn Encoder>)>,
-        sync_timeout: Duration,
-        max_pending: usize,
-        limits: Limits,
-        tracker: Option<TrackerConfig>,
+        options: SceneOptions,
         metrics: Metrics,
         recorder: Option<SceneRecorder>,
     ) -> Result<Arc<Scene>> {
+        let SceneOptions {
+            sync_timeout,
+            max_pending_frames: max_pending,
+            limits,
+            tracker,
+        } = options;
         let n = spec.cameras.len();
         if n == 0 || n > limits.max_cameras {
             return Err(Error::invalid(
