@@ -42,7 +42,7 @@ fn ct_eq(a: &[u8], b: &[u8]) -> bool {
 fn exempt(path: &str) -> bool {
     matches!(path, "/healthz" | "/readyz" | "/metrics")
         || path.starts_with("/grpc.health.v1.")
-        || crate::viewer::is_asset(path)
+        || crate::transport::http::viewer::is_asset(path)
 }
 
 /// True for gRPC requests (content-type `application/grpc[+proto]`).

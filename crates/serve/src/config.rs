@@ -329,8 +329,8 @@ pub struct ServeConfig {
     pub tracker: Option<TrackerConfig>,
     /// Record every accepted batch ([`super::record`]) when set.
     pub record: Option<super::record::RecordConfig>,
-    /// Kafka mode ([`super::kafka`]) beside gRPC and HTTP, when set.
-    pub kafka: Option<super::kafka::config::KafkaConfig>,
+    /// Kafka mode ([`crate::transport::kafka`]) beside gRPC and HTTP, when set.
+    pub kafka: Option<crate::transport::kafka::config::KafkaConfig>,
 }
 
 impl std::fmt::Debug for ServeConfig {

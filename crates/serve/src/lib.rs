@@ -1,16 +1,19 @@
 //! The streaming association service: gRPC (tonic) and HTTP JSON (axum) over one port.
 //!
-//! Layout (one job per module; imports run down this list's layers): the domain — [`sync`]
-//! the pure frame synchronizer, [`scene`] a live scene (validation, admission, the encoder
-//! worker thread, the clock watch, results broadcast), [`registry`] model loading, [`reload`]
-//! live model swaps, [`record`] the recording of accepted batches (`--record`), [`service`] the
-//! one domain API; the transports — [`grpc`] and [`http`] with the error mappings (wire types
-//! and conversions: `crossview-api`; [`push`]: the gRPC `Push` and `Stream` calls' own request
-//! framing, so a bad message is refused alone), [`viewer`] the live viewer's web page,
-//! [`kafka`] Kafka mode (consume batches, produce results); cross-cutting — [`config`],
-//! [`auth`], [`body`], `conn`, [`tls`], [`metrics`]; `router` binds the transports and the
-//! middleware into one router, and this module runs it on one listener with graceful
-//! shutdown.
+//! Layout (one job per module; imports run down these layers): the domain — [`sync`] the pure
+//! frame synchronizer, [`scene`] a live scene (validation, admission, the encoder worker
+//! thread, the clock watch, results broadcast), [`registry`] model loading, [`reload`] live
+//! model swaps, [`record`] the recording of accepted batches (`--record`), [`service`] the one
+//! domain API; the [`transport`]s, one folder each — [`transport::grpc`] (with the `Push` and
+//! `Stream` calls' own request framing), [`transport::http`] (with the live viewer) and
+//! [`transport::kafka`] — each mapping the one domain error in its own way (wire types and
+//! conversions: `crossview-api`); cross-cutting — [`config`], [`auth`], [`body`], `conn`,
+//! [`tls`], [`metrics`]; `router` binds the transports and the middleware into one router,
+//! and this module runs it on one listener with graceful shutdown.
+//!
+//! Where things go: a new transport in `transport/<name>/`, calling [`Service`]; a new scene
+//! setting in [`scene::SceneOptions`] (and the flag in [`config`]); a new Kafka option in
+//! `transport/kafka/config.rs`.
 //!
 //! Tests and the CLI start it the same way: [`Server::load`] (or [`run`]) then
 //! [`Server::serve`] on a bound listener with a shutdown future.
@@ -21,12 +24,8 @@ pub mod config;
 pub(crate) mod conn;
 pub mod cost;
 mod echo;
-pub mod grpc;
-pub mod http;
-pub mod kafka;
 mod locks;
 pub mod metrics;
-pub mod push;
 pub mod record;
 pub mod registry;
 pub mod reload;
@@ -36,7 +35,7 @@ pub mod service;
 pub(crate) mod subscribers;
 pub mod sync;
 pub mod tls;
-pub mod viewer;
+pub mod transport;
 
 use std::future::Future;
 use std::sync::Arc;
@@ -51,11 +50,11 @@ use tokio::net::TcpListener;
 use tower::ServiceExt;
 
 pub use config::{ConnectionLimits, Limits, ModelSpec, ServeConfig, TlsConfig};
-pub use kafka::{KafkaConfig, ValueFormat};
 pub use record::RecordConfig;
 pub use registry::SceneInfo;
 pub use scene::Scene;
 pub use service::Service;
+pub use transport::kafka::{KafkaConfig, ValueFormat};
 
 use crossview_core::Encoder;
 use crossview_core::{Error, Result};
@@ -198,7 +197,7 @@ impl Server {
             spawn_timer(scene, self.service.shutting_down());
         }
         let kafka = match &self.config.kafka {
-            Some(k) => Some(kafka::start(self.service.clone(), k.clone())?),
+            Some(k) => Some(transport::kafka::start(self.service.clone(), k.clone())?),
             None => None,
         };
         #[cfg(unix)]

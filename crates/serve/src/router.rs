@@ -13,7 +13,9 @@ use tower::ServiceExt;
 
 use crate::config::ServeConfig;
 use crate::service::Service;
-use crate::{auth, body, grpc, http, metrics, push};
+use crate::transport::grpc::{self, push};
+use crate::transport::http;
+use crate::{auth, body, metrics};
 use crossview_core::{Error, Result};
 
 /// A tonic service mounted on an axum path prefix; each request body is bounded per message

@@ -33,7 +33,7 @@ pub struct Service {
     scenes: BTreeMap<String, Arc<Scene>>,
     metrics: Metrics,
     ready: AtomicBool,
-    /// False while a Kafka consumer has not yet joined its group (see [`crate::kafka`]).
+    /// False while a Kafka consumer has not yet joined its group (see [`crate::transport::kafka`]).
     consumer_ready: AtomicBool,
     shutdown: watch::Sender<bool>,
     stall_timeout: Option<Duration>,

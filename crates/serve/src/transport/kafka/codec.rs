@@ -93,7 +93,7 @@ pub(super) fn encode_result(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::kafka::KafkaConfig;
+    use crate::transport::kafka::KafkaConfig;
     use crossview_core::Batch;
 
     #[test]

@@ -13,9 +13,9 @@ use axum::http::header;
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 
-const INDEX_HTML: &str = include_str!("../assets/index.html");
-const VIEWER_JS: &str = include_str!("../assets/viewer.js");
-const VIEWER_CSS: &str = include_str!("../assets/viewer.css");
+const INDEX_HTML: &str = include_str!("../../../assets/index.html");
+const VIEWER_JS: &str = include_str!("../../../assets/viewer.js");
+const VIEWER_CSS: &str = include_str!("../../../assets/viewer.css");
 
 /// The viewer's paths: `/` (the page), `/viewer.js`, `/viewer.css`.
 pub const ASSETS: [&str; 3] = ["/", "/viewer.js", "/viewer.css"];

@@ -1,6 +1,8 @@
 //! The HTTP JSON transport (axum): the one `Error → response` mapping and thin handlers over
 //! [`Service`], plus health, readiness, metrics, the Server-Sent-Events result stream and the
-//! live viewer's page ([`crate::viewer`]).
+//! live viewer's page ([`viewer`]).
+pub mod viewer;
+
 use std::convert::Infallible;
 use std::sync::Arc;
 
@@ -15,8 +17,8 @@ use axum::{Json, Router};
 use futures::StreamExt;
 use serde::de::DeserializeOwned;
 
-use super::metrics::UncountedError;
-use super::service::Service;
+use crate::metrics::UncountedError;
+use crate::service::Service;
 use crossview_api::types::{AssociateRequest, BatchAck, EventsQuery};
 use crossview_core::Batch;
 use crossview_core::Error;
@@ -374,7 +376,7 @@ async fn events(
     State(svc): State<Arc<Service>>,
     Path(scene): Path<String>,
     query: Result<Query<EventsQuery>, QueryRejection>,
-    conn: Option<axum::Extension<super::conn::ConnHandle>>,
+    conn: Option<axum::Extension<crate::conn::ConnHandle>>,
 ) -> Result<Response, HttpError> {
     let Query(query) = query
         .map_err(|e| Error::invalid("boxes", e.body_text()))
@@ -410,7 +412,7 @@ pub(crate) fn router(svc: Arc<Service>, max_body: usize) -> Router {
         .route("/v1/scenes/{scene}/batches", post(push_batch))
         .route("/v1/scenes/{scene}/events", get(events))
         .route("/v1/admin/reload", post(reload))
-        .merge(super::viewer::router())
+        .merge(viewer::router())
         .layer(DefaultBodyLimit::max(max_body))
         .with_state(svc)
 }

@@ -1,4 +1,6 @@
 //! The gRPC transport (tonic): the one `Error → Status` mapping and a thin `Association` implementation over [`Service`].
+pub mod push;
+
 use std::pin::Pin;
 use std::sync::Arc;
 
@@ -13,7 +15,7 @@ use crossview_api::convert::{
 use crossview_api::pb;
 use crossview_core::Error;
 
-use super::service::Service;
+use crate::service::Service;
 
 /// The one `Error → gRPC status` mapping; the message is the error's, truncated.
 pub(crate) fn status(e: Error) -> Status {
@@ -81,7 +83,7 @@ pub(crate) type Incoming = Result<crossview_core::Result<pb::Batch>, Status>;
 /// ended (shutdown), or the client half-closed and the result of the newest frame it had
 /// accepted went out (at most `linger` after the half-close: sync timeout + frame deadline).
 async fn forward_results(
-    mut results: super::service::ResultStream,
+    mut results: crate::service::ResultStream,
     tx: mpsc::Sender<Result<pb::StreamResponse, Status>>,
     mut half_closed: watch::Receiver<Option<Option<u64>>>,
     linger: std::time::Duration,
@@ -176,7 +178,7 @@ impl GrpcService {
         let svc = self.svc.clone();
         let conn = request
             .extensions()
-            .get::<super::conn::ConnHandle>()
+            .get::<crate::conn::ConnHandle>()
             .cloned();
         let stall = Some(self.stall_timeout);
         let input = request.into_inner();
@@ -293,7 +295,7 @@ impl pb::association_server::Association for GrpcService {
     ) -> Result<Response<Self::SubscribeStream>, Status> {
         let conn = request
             .extensions()
-            .get::<super::conn::ConnHandle>()
+            .get::<crate::conn::ConnHandle>()
             .cloned();
         let stall = Some(self.stall_timeout);
         let results = self

@@ -33,7 +33,7 @@ use tonic::codegen::BoxFuture;
 use tonic::server::NamedService;
 use tonic::{Request, Response, Status, Streaming};
 
-use super::grpc::{BoxStream, GrpcService};
+use super::{BoxStream, GrpcService};
 use crossview_api::pb;
 use crossview_api::pb::association_server::AssociationServer;
 use crossview_core::Error;
