@@ -5,7 +5,12 @@
    `use super::b`, or a `crate::b::...` path in the code) and B, directly or through others,
    uses A. A module and the modules inside it are one unit here (a child using its parent's
    items is not a circle).
-2. Sizes (reported; `--strict-sizes` fails on them): no non-test source file over 600 lines
+2. The layers of crossview-serve: transports -> service -> scene -> core. Cross-cutting
+   modules (config, auth, body, conn, tls, metrics, locks, echo) import no domain module and
+   no transport; domain modules (sync, cost, scene, registry, reload, record, subscribers,
+   service) import no transport and not the router; only the router and the crate root bind
+   the transports (the one exception: `config` holds the Kafka transport's settings type).
+3. Sizes (reported; `--strict-sizes` fails on them): no non-test source file over 600 lines
    and no function over 100 lines in crossview-serve, crossview-core and crossview-train.
 
 Usage: python3 scripts/check_layout.py [--strict-sizes]   (exit 1 on a violation)
@@ -20,6 +25,29 @@ CRATES = {p.parent.name if p.parent.name != "src" else p.parent.parent.name: p.p
           for p in list(ROOT.glob("crates/*/src/lib.rs")) + [ROOT / "src/lib.rs",
                                                               ROOT / "loadtest/src/main.rs"]}
 SIZED = ["serve", "core", "train"]
+# crossview-serve's layers: a module of a layer may import its own layer and those listed.
+CROSS = {"auth", "body", "conn", "tls", "metrics", "locks", "echo"}
+# `config` assembles every settings type (the domain's, and the Kafka transport's).
+SETTINGS = {"config"}
+DOMAIN = {"sync", "cost", "scene", "registry", "reload", "record", "subscribers", "service"}
+TOP = {"router", ""}  # the crate root binds everything
+ALLOWED_UP = {(("config",), ("transport", "kafka", "config"))}
+
+
+def layer_violation(mod: tuple, dep: tuple) -> bool:
+    """True when serve module `mod` may not import `dep`."""
+    if (mod[:1], dep[:3]) in ALLOWED_UP or (mod, dep) in ALLOWED_UP:
+        return False
+    top, target = (mod[0] if mod else ""), (dep[0] if dep else "")
+    if top in TOP:
+        return False
+    if top == "transport":
+        return target in TOP
+    if top in DOMAIN | SETTINGS:
+        return target in TOP or target == "transport"
+    if top in CROSS:
+        return target in TOP or target == "transport" or target in DOMAIN
+    return False
 MAX_FILE, MAX_FN = 600, 100
 
 USE = re.compile(r"\b(?:crate|super)(?:::\w+)+")
@@ -149,6 +177,13 @@ def main():
             failed = True
             names = ", ".join("::".join(c) or "(root)" for c in sorted(comp))
             print(f"{crate}: import circle between {names}")
+        if crate == "serve":
+            for m in sorted(graph):
+                for d in sorted(graph[m]):
+                    if layer_violation(m, d):
+                        failed = True
+                        print(f"serve: {'::'.join(m)} imports {'::'.join(d) or '(root)'}, "
+                              "a higher layer")
     sizes = []
     for crate in SIZED:
         src = CRATES.get(crate)
@@ -169,7 +204,8 @@ def main():
     if sizes and args.strict_sizes:
         failed = True
     print("layout: " + ("violations found" if failed else
-                        f"no import circles in {len(CRATES)} crates; {len(sizes)} size notes"))
+                        f"no import circles in {len(CRATES)} crates, serve's layers hold; "
+                        f"{len(sizes)} size notes"))
     return 1 if failed else 0
 
 

@@ -22,6 +22,8 @@ use crossview_core::Error;
 pub(crate) struct ApiKeys {
     keys: Arc<Vec<Vec<u8>>>,
     metrics: Metrics,
+    /// Paths the transports serve without data (the viewer's page and assets).
+    public: fn(&str) -> bool,
 }
 
 impl std::fmt::Debug for ApiKeys {
@@ -38,11 +40,9 @@ fn ct_eq(a: &[u8], b: &[u8]) -> bool {
     a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
-/// Paths that never need a token.
+/// Paths that never need a token (besides the transports' `public` ones).
 fn exempt(path: &str) -> bool {
-    matches!(path, "/healthz" | "/readyz" | "/metrics")
-        || path.starts_with("/grpc.health.v1.")
-        || crate::transport::http::viewer::is_asset(path)
+    matches!(path, "/healthz" | "/readyz" | "/metrics") || path.starts_with("/grpc.health.v1.")
 }
 
 /// True for gRPC requests (content-type `application/grpc[+proto]`).
@@ -60,8 +60,9 @@ impl ApiKeys {
     }
 
     /// Accepts any of `keys` (surrounding white space trimmed); no keys = authentication off.
-    /// A blank key is an error: it would otherwise turn authentication off silently.
-    pub fn new(keys: &[String], metrics: Metrics) -> Result<Self, Error> {
+    /// A blank key is an error: it would otherwise turn authentication off silently. `public`
+    /// says which further paths hold no data (the viewer's page and assets).
+    pub fn new(keys: &[String], metrics: Metrics, public: fn(&str) -> bool) -> Result<Self, Error> {
         let mut out = Vec::with_capacity(keys.len());
         for (i, k) in keys.iter().enumerate() {
             let k = k.trim();
@@ -80,12 +81,14 @@ impl ApiKeys {
         Ok(ApiKeys {
             keys: Arc::new(out),
             metrics,
+            public,
         })
     }
 
     /// Checks the `authorization: Bearer <key>` header of a request.
     pub fn check(&self, req: &Request) -> Result<(), Error> {
-        if self.keys.is_empty() || exempt(req.uri().path()) {
+        let path = req.uri().path();
+        if self.keys.is_empty() || exempt(path) || (self.public)(path) {
             return Ok(());
         }
         let header = req
@@ -167,6 +170,7 @@ pub(crate) async fn same_origin(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::transport::http::viewer::is_asset as viewer;
 
     fn req(path: &str, auth: Option<&str>) -> Request {
         let mut b = http::Request::builder().uri(path);
@@ -178,7 +182,8 @@ mod tests {
 
     #[test]
     fn tokens_are_checked_except_on_exempt_paths() {
-        let keys = ApiKeys::new(&["s3cret".into(), " other ".into()], Metrics::new()).unwrap();
+        let keys =
+            ApiKeys::new(&["s3cret".into(), " other ".into()], Metrics::new(), viewer).unwrap();
         assert!(
             keys.check(&req("/v1/scenes", Some("Bearer s3cret")))
                 .is_ok()
@@ -198,7 +203,7 @@ mod tests {
             keys.check(&req("/grpc.health.v1.Health/Check", None))
                 .is_ok()
         );
-        let open = ApiKeys::new(&[], Metrics::new()).unwrap();
+        let open = ApiKeys::new(&[], Metrics::new(), viewer).unwrap();
         assert!(open.check(&req("/v1/scenes", None)).is_ok());
         // The scheme is case-insensitive; an empty token is no token.
         assert!(
@@ -223,7 +228,10 @@ mod tests {
             vec![" ".into()],
             vec!["k".into(), "\t".into()],
         ] {
-            assert!(ApiKeys::new(&keys, Metrics::new()).is_err(), "{keys:?}");
+            assert!(
+                ApiKeys::new(&keys, Metrics::new(), viewer).is_err(),
+                "{keys:?}"
+            );
         }
     }
 

@@ -75,7 +75,11 @@ pub(crate) async fn build_router(svc: &Arc<Service>, config: &ServeConfig) -> Re
         max_bytes: limit,
         timeout: body_timeout,
     };
-    let keys = auth::ApiKeys::new(&config.api_keys, svc.metrics().clone())?;
+    let keys = auth::ApiKeys::new(
+        &config.api_keys,
+        svc.metrics().clone(),
+        http::viewer::is_asset,
+    )?;
     Ok(router
         .merge(
             http::router(svc.clone(), limit).layer(middleware::from_fn_with_state(
