@@ -85,16 +85,42 @@ fn numbers(table: &str) -> Vec<String> {
         .collect()
 }
 
+/// A temporary directory holding the random model `m.onnx` and the labelled recording
+/// `gt.jsonl` (the setup every end-to-end test here starts from).
+struct Fixture {
+    dir: tempfile::TempDir,
+    model: std::path::PathBuf,
+    data: std::path::PathBuf,
+    rec: Recording,
+}
+
+impl Fixture {
+    fn new() -> Self {
+        let dir = tempfile::tempdir().unwrap();
+        let model = dir.path().join("m.onnx");
+        let data = dir.path().join("gt.jsonl");
+        write_model(&model);
+        let rec = recording();
+        write_recording(&data, &rec).unwrap();
+        Fixture {
+            dir,
+            model,
+            data,
+            rec,
+        }
+    }
+
+    /// A path in the fixture's directory.
+    fn path(&self, name: &str) -> std::path::PathBuf {
+        self.dir.path().join(name)
+    }
+}
+
 #[test]
 fn eval_dump_and_recompute_give_the_same_table() {
-    let dir = tempfile::tempdir().unwrap();
-    let model = dir.path().join("m.onnx");
-    let data = dir.path().join("gt.jsonl");
-    let dump = dir.path().join("pairs.jsonl");
-    let report = dir.path().join("report.json");
-    write_model(&model);
-    let rec = recording();
-    write_recording(&data, &rec).unwrap();
+    let f = Fixture::new();
+    let (model, data, rec) = (f.model.clone(), f.data.clone(), f.rec.clone());
+    let (dump, report) = (f.path("pairs.jsonl"), f.path("report.json"));
     let s = |p: &Path| p.display().to_string();
 
     let table = crossview(&[
@@ -146,13 +172,9 @@ fn eval_dump_and_recompute_give_the_same_table() {
 
 #[test]
 fn pairwise_and_identity_rows_and_associate_cover_every_box() {
-    let dir = tempfile::tempdir().unwrap();
-    let model = dir.path().join("m.onnx");
-    let data = dir.path().join("gt.jsonl");
-    let out = dir.path().join("assoc.jsonl");
-    write_model(&model);
-    let rec = recording();
-    write_recording(&data, &rec).unwrap();
+    let f = Fixture::new();
+    let (model, data, rec) = (f.model.clone(), f.data.clone(), f.rec.clone());
+    let out = f.path("assoc.jsonl");
     let s = |p: &Path| p.display().to_string();
 
     let table = crossview(&[
@@ -236,13 +258,9 @@ fn pairwise_and_identity_rows_and_associate_cover_every_box() {
 
 #[test]
 fn tracking_scores_and_associate_track_ids_agree_on_every_box() {
-    let dir = tempfile::tempdir().unwrap();
-    let model = dir.path().join("m.onnx");
-    let data = dir.path().join("gt.jsonl");
-    let out = dir.path().join("tracks.jsonl");
-    write_model(&model);
-    let rec = recording();
-    write_recording(&data, &rec).unwrap();
+    let f = Fixture::new();
+    let (model, data, rec) = (f.model.clone(), f.data.clone(), f.rec.clone());
+    let out = f.path("tracks.jsonl");
     let s = |p: &Path| p.display().to_string();
     let table = crossview(&[
         "eval",

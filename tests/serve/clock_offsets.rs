@@ -75,14 +75,7 @@ async fn run_until(
     lag: impl Fn(u64) -> u64,
     after_change: Option<u64>,
 ) -> Run {
-    let mut sub = server.grpc().await;
-    let mut results = sub
-        .subscribe(pb::SubscribeRequest {
-            scene: "demo".into(),
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let mut results = server.subscribe("demo").await;
     let mut cfg = SimConfig::preset("square4").unwrap();
     cfg.frames = frames.end;
     cfg.seed = 21;

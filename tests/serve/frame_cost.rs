@@ -5,7 +5,6 @@
 
 use std::time::{Duration, Instant};
 
-use crossview_api::pb;
 use crossview_serve::Limits;
 use crossview_serve::cost::frame_cost;
 use crossview_testing::*;
@@ -114,14 +113,7 @@ async fn push_backlog(server: &TestServer, frames: u64, n: usize) -> usize {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_backlog_of_expensive_frames_is_cut_at_the_frame_deadline() {
     let server = start(|c| c.limits.frame_deadline = Duration::from_millis(100)).await;
-    let mut sub = server.grpc().await;
-    let mut results = sub
-        .subscribe(pb::SubscribeRequest {
-            scene: "lab".into(),
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let mut results = server.subscribe("lab").await;
     let frames = 12;
     push_backlog(&server, frames, largest_uniform() * 3 / 4).await;
     let (mut associated, mut cut) = (0, 0);
@@ -153,14 +145,7 @@ async fn shutdown_respects_its_grace_with_expensive_frames_queued() {
         c.shutdown_grace = Duration::from_millis(200);
     })
     .await;
-    let mut sub = server.grpc().await;
-    let mut results = sub
-        .subscribe(pb::SubscribeRequest {
-            scene: "lab".into(),
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let mut results = server.subscribe("lab").await;
     let frames = 30;
     push_backlog(&server, frames, largest_uniform() * 3 / 4).await;
     server.shutdown().await.unwrap();

@@ -26,14 +26,7 @@ async fn push_all(server: &TestServer, batches: Vec<pb::Batch>) -> Vec<i32> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_huge_frame_id_cannot_deny_the_scene() {
     let server = start(|c| c.sync_timeout = std::time::Duration::from_millis(20)).await;
-    let mut sub = server.grpc().await;
-    let mut results = sub
-        .subscribe(pb::SubscribeRequest {
-            scene: "lab".into(),
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let mut results = server.subscribe("lab").await;
     // Frame 1 complete, then the hostile ids, alone and repeated.
     let mut batches: Vec<_> = (0..3).map(|c| batch(c, 1, 2)).collect();
     batches.push(batch(0, u64::MAX, 1));
@@ -80,14 +73,7 @@ async fn a_huge_frame_id_cannot_deny_the_scene() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn far_future_junk_does_not_break_up_real_frames() {
     let server = start(|c| c.sync_timeout = std::time::Duration::from_secs(30)).await;
-    let mut sub = server.grpc().await;
-    let mut results = sub
-        .subscribe(pb::SubscribeRequest {
-            scene: "lab".into(),
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let mut results = server.subscribe("lab").await;
     // Anchor the scene at frame 0, then 64 single-camera junk batches far ahead.
     let codes = push_all(&server, (0..3).map(|c| batch(c, 0, 1)).collect()).await;
     assert_eq!(codes, vec![0, 0, 0]);
@@ -115,14 +101,7 @@ async fn far_future_junk_does_not_break_up_real_frames() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn cameras_restarting_their_ids_move_the_scene() {
     let server = start(|c| c.sync_timeout = std::time::Duration::from_millis(20)).await;
-    let mut sub = server.grpc().await;
-    let mut results = sub
-        .subscribe(pb::SubscribeRequest {
-            scene: "lab".into(),
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let mut results = server.subscribe("lab").await;
     let codes = push_all(&server, (0..3).map(|c| batch(c, 5_000_000, 1)).collect()).await;
     assert_eq!(codes, vec![0, 0, 0]);
     let first = guard("result", results.next()).await.unwrap().unwrap();

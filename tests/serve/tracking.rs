@@ -44,14 +44,7 @@ fn tracked(r: &pb::FrameResult) -> Vec<(Vec<(u32, u32)>, u64)> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn people_standing_still_keep_their_track_ids() {
     let server = start(|_| {}).await;
-    let mut sub = server.grpc().await;
-    let mut results = sub
-        .subscribe(pb::SubscribeRequest {
-            scene: "lab".into(),
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let mut results = server.subscribe("lab").await;
     let sse = reqwest::get(server.url("/v1/scenes/lab/events"))
         .await
         .unwrap();
@@ -126,14 +119,7 @@ async fn people_standing_still_keep_their_track_ids() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn tracking_off_streams_identities_without_track_ids() {
     let server = start(|c| c.tracker = None).await;
-    let mut sub = server.grpc().await;
-    let mut results = sub
-        .subscribe(pb::SubscribeRequest {
-            scene: "lab".into(),
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let mut results = server.subscribe("lab").await;
     for f in 1..=2 {
         push_still_frame(&server, f).await;
         let r = guard("result", results.next()).await.unwrap().unwrap();

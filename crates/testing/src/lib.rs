@@ -184,6 +184,18 @@ impl TestServer {
         AssociationClient::new(ch)
     }
 
+    /// Subscribes to `scene`'s results over gRPC (its own connection); panics on a refusal.
+    pub async fn subscribe(&self, scene: &str) -> tonic::Streaming<pb::FrameResult> {
+        self.grpc()
+            .await
+            .subscribe(pb::SubscribeRequest {
+                scene: scene.into(),
+            })
+            .await
+            .expect("subscribe")
+            .into_inner()
+    }
+
     /// `/metrics` text.
     pub async fn metrics(&self) -> String {
         reqwest::get(self.url("/metrics"))
