@@ -1,6 +1,6 @@
 //! The project's one domain error type. Every crate returns it; the server maps it exactly
-//! once per transport (gRPC status codes in `crossview_serve::grpc`, HTTP statuses in
-//! `crossview_serve::http`) and counts it by [`Error::kind`] in one place.
+//! once per transport (gRPC status codes in `crossview_serve::transport::grpc`, HTTP statuses in
+//! `crossview_serve::transport::http`) and counts it by [`Error::kind`] in one place.
 use std::path::PathBuf;
 
 /// Result alias used across the crates.
