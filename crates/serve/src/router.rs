@@ -124,26 +124,12 @@ async fn track_requests(State(m): State<metrics::Metrics>, req: Request, next: N
     resp
 }
 
-/// The gRPC methods this server serves: the only gRPC label values besides `other`.
-const GRPC_METHODS: &[&str] = &[
-    "/crossview.v1.Association/Associate",
-    "/crossview.v1.Association/Push",
-    "/crossview.v1.Association/Subscribe",
-    "/crossview.v1.Association/Stream",
-    "/crossview.v1.Association/ListScenes",
-    "/crossview.v1.Association/GetScene",
-    "/crossview.v1.Association/Reload",
-    "/grpc.health.v1.Health/Check",
-    "/grpc.health.v1.Health/Watch",
-    "/grpc.reflection.v1.ServerReflection/ServerReflectionInfo",
-];
-
 /// The `method` label of a request, from a closed set: a known gRPC method path or `other`;
 /// for HTTP a standard verb (else `OTHER`) and the matched route template, or `unmatched`.
 fn request_label(req: &Request, grpc: bool) -> String {
     if grpc {
         let path = req.uri().path();
-        return GRPC_METHODS
+        return grpc::METHODS
             .iter()
             .find(|m| **m == path)
             .map_or("other", |m| m)

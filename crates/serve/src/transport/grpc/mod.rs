@@ -17,6 +17,20 @@ use crossview_core::Error;
 
 use crate::service::Service;
 
+/// The gRPC methods this server serves: the only gRPC label values besides `other`.
+pub(crate) const METHODS: &[&str] = &[
+    "/crossview.v1.Association/Associate",
+    "/crossview.v1.Association/Push",
+    "/crossview.v1.Association/Subscribe",
+    "/crossview.v1.Association/Stream",
+    "/crossview.v1.Association/ListScenes",
+    "/crossview.v1.Association/GetScene",
+    "/crossview.v1.Association/Reload",
+    "/grpc.health.v1.Health/Check",
+    "/grpc.health.v1.Health/Watch",
+    "/grpc.reflection.v1.ServerReflection/ServerReflectionInfo",
+];
+
 /// The one `Error → gRPC status` mapping; the message is the error's, truncated.
 pub(crate) fn status(e: Error) -> Status {
     {
