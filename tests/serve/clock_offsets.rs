@@ -13,9 +13,9 @@ use crossview_api::pb;
 use crossview_core::{Batch, SceneSpec};
 use crossview_data::sim::{SimConfig, Simulator};
 use crossview_eval::compute_metrics;
+use crossview_serve::ServeConfig;
 use crossview_serve::config::ClockWatchConfig;
 use crossview_serve::config::SceneDecl;
-use crossview_serve::{ModelSpec, ServeConfig};
 use crossview_testing::*;
 use futures::StreamExt;
 use rand::SeedableRng;
@@ -25,11 +25,6 @@ const FRAMES: u64 = 300;
 /// Frames the lagging camera runs late (1 s at the simulator's 10 fps).
 const LAG: u64 = 10;
 const LAGGING: usize = 2;
-
-fn demo_model() -> Vec<ModelSpec> {
-    let path = repo_root().join("models/demo.onnx");
-    vec![ModelSpec::parse(path.to_str().unwrap()).unwrap()]
-}
 
 fn configure(c: &mut ServeConfig, declared: Option<SceneSpec>) {
     c.sync_timeout = Duration::from_millis(300);
@@ -99,14 +94,7 @@ async fn run_until(
             break;
         }
         if changed_at.is_none() && frame.frame_id % 25 == 0 {
-            let d: serde_json::Value = http
-                .get(server.url("/v1/scenes/demo"))
-                .send()
-                .await
-                .unwrap()
-                .json()
-                .await
-                .unwrap();
+            let d = server.get_json("/v1/scenes/demo").await;
             if d["cameras"][LAGGING]["offset"].as_i64().unwrap_or(0) != 0 {
                 changed_at = Some(frame.frame_id);
             }
@@ -190,17 +178,9 @@ fn score(sent: &Sent, results: &[pb::FrameResult], offset: &[u64]) -> (f64, f64)
 /// Waits for the live estimate of the frames before `end` and returns the scene description
 /// (HTTP JSON).
 async fn clock_of(server: &TestServer, end: u64) -> serde_json::Value {
-    let http = reqwest::Client::new();
     guard("clock estimate", async {
         loop {
-            let d: serde_json::Value = http
-                .get(server.url("/v1/scenes/demo"))
-                .send()
-                .await
-                .unwrap()
-                .json()
-                .await
-                .unwrap();
+            let d = server.get_json("/v1/scenes/demo").await;
             if d["clock"]["as_of_frame"]
                 .as_u64()
                 .is_some_and(|f| f + 10 >= end)

@@ -14,7 +14,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use crossview_data::sim::SimConfig;
-use crossview_serve::{ModelSpec, ServeConfig};
+use crossview_serve::ServeConfig;
 use crossview_testing::browser::Browser;
 use crossview_testing::*;
 use futures::StreamExt;
@@ -24,11 +24,6 @@ use tokio::sync::watch;
 const WIDTH: u32 = 1400;
 const HEIGHT: u32 = 900;
 const KEY: &str = "viewer-s3cret-key";
-
-fn demo_model() -> Vec<ModelSpec> {
-    let path = repo_root().join("models/demo.onnx");
-    vec![ModelSpec::parse(path.to_str().unwrap()).unwrap()]
-}
 
 /// A sync timeout no loaded machine reaches between a frame's four batches (a frame leaves
 /// as soon as all four arrived, so this slows nothing down).

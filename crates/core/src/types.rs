@@ -4,6 +4,12 @@ use serde::{Deserialize, Serialize};
 
 use crate::{Error, Result};
 
+/// The frame a camera's frame id `frame_id` belongs to when its clock runs `offset` ids late
+/// (`frame_id − offset`), or `None` outside `0..=u64::MAX`.
+pub fn frame_less_offset(frame_id: u64, offset: i64) -> Option<u64> {
+    frame_id.checked_add_signed(offset.checked_neg()?)
+}
+
 /// One camera of a scene: its name, image size in pixels and clock offset.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct CameraSpec {
@@ -48,7 +54,7 @@ impl CameraSpec {
     /// The frame this camera's frame id `frame_id` belongs to (`frame_id − offset`), or `None`
     /// when that falls outside `0..=u64::MAX`.
     pub fn frame_of(&self, frame_id: u64) -> Option<u64> {
-        frame_id.checked_add_signed(self.offset.checked_neg()?)
+        frame_less_offset(frame_id, self.offset)
     }
 
     /// The one rule for a camera wherever it is declared (`--scene`, a recording header, a

@@ -184,6 +184,16 @@ impl TestServer {
         AssociationClient::new(ch)
     }
 
+    /// `GET path` as JSON; panics when the answer is not JSON.
+    pub async fn get_json(&self, path: &str) -> serde_json::Value {
+        reqwest::get(self.url(path))
+            .await
+            .expect("GET")
+            .json()
+            .await
+            .expect("a JSON answer")
+    }
+
     /// Subscribes to `scene`'s results over gRPC (its own connection); panics on a refusal.
     pub async fn subscribe(&self, scene: &str) -> tonic::Streaming<pb::FrameResult> {
         self.grpc()
@@ -305,6 +315,13 @@ pub fn check_identities(r: &pb::FrameResult, boxes_per_camera: &[usize]) {
             assert!(seen.insert((c, m.index)), "box in two identities: {m:?}");
         }
     }
+}
+
+/// The shipped `models/demo.onnx` (scene `demo`: the simulator's `square4` cameras) as the
+/// server's one model.
+pub fn demo_model() -> Vec<ModelSpec> {
+    let path = repo_root().join("models/demo.onnx");
+    vec![ModelSpec::parse(path.to_str().unwrap()).unwrap()]
 }
 
 /// The repository root (where `models/`, `scenes/`, `proto/` and `.cache/` live).

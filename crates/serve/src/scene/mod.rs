@@ -323,7 +323,7 @@ impl Scene {
     /// clock offset (its `@±N` in the scene declaration, or what `--auto-align` set).
     fn frame_of(&self, cam: usize, frame_id: u64) -> Result<u64> {
         let offset = self.offsets[cam].load(Ordering::Acquire);
-        frame_id.checked_add_signed(-offset).ok_or_else(|| {
+        crossview_core::types::frame_less_offset(frame_id, offset).ok_or_else(|| {
             Error::invalid(
                 "frame_id",
                 format!(
