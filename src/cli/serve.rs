@@ -347,12 +347,12 @@ impl ServeArgs {
             .models
             .iter()
             .map(|m| ModelSpec::parse(m))
-            .collect::<crossview_core::Result<Vec<_>>>()?;
+            .collect::<crossview_serve::Result<Vec<_>>>()?;
         let scenes = self
             .scenes
             .iter()
             .map(|s| SceneDecl::parse(s))
-            .collect::<crossview_core::Result<Vec<_>>>()?;
+            .collect::<crossview_serve::Result<Vec<_>>>()?;
         let api_keys = self.api_keys()?;
         let tls = match (&self.tls_cert, &self.tls_key) {
             (Some(cert), Some(key)) => Some(TlsConfig {

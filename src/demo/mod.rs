@@ -23,11 +23,10 @@ use crossview_api::convert::{detection_to_pb, identity_from_pb};
 use crossview_api::pb;
 use crossview_api::pb::association_client::AssociationClient;
 use crossview_core::identity::Identity;
-use crossview_core::{Error, Result};
 use crossview_core::{Frame, SceneSpec};
 use crossview_data::sim::{SimConfig, Simulator};
 use crossview_eval::metrics::Metrics;
-use crossview_serve::{ServeConfig, Server};
+use crossview_serve::{Error, Result, ServeConfig, Server};
 
 pub use score::{RunningScore, TruthIds, pair_records};
 
@@ -76,7 +75,7 @@ pub struct DemoSummary {
     pub metrics: Metrics,
 }
 
-/// Maps a gRPC status from the server to the crate error.
+/// Maps a gRPC status from the server to the server's error (the client sees what it refused).
 fn status_error(what: &str, s: tonic::Status) -> Error {
     let msg = format!("{what}: {}", s.message());
     match s.code() {
@@ -289,8 +288,10 @@ pub async fn start_local_server(config: ServeConfig, listen: &str) -> Result<Loc
         .map_err(|e| Error::Unavailable(format!("model loading task failed: {e}")))??;
     let listener = TcpListener::bind(listen)
         .await
-        .map_err(|e| Error::io(listen, e))?;
-    let addr = listener.local_addr().map_err(|e| Error::io(listen, e))?;
+        .map_err(|e| crossview_core::Error::io(listen, e))?;
+    let addr = listener
+        .local_addr()
+        .map_err(|e| crossview_core::Error::io(listen, e))?;
     let (tx, rx) = oneshot::channel::<()>();
     let task = tokio::spawn(server.serve(listener, async move {
         let _ = rx.await;

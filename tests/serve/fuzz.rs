@@ -11,9 +11,9 @@ use crossview_api::pb;
 use crossview_api::types::AssociateRequest;
 use crossview_core::Batch;
 use crossview_core::Encoder;
-use crossview_core::Error;
+use crossview_core::Error as CoreError;
 use crossview_model::OnnxEncoder;
-use crossview_serve::{ServeConfig, Server, Service, registry};
+use crossview_serve::{Error, ServeConfig, Server, Service, registry};
 use proptest::prelude::*;
 use prost::Message;
 
@@ -52,11 +52,12 @@ fn env() -> &'static Env {
 fn expected(e: &Error) -> bool {
     matches!(
         e,
-        Error::InvalidArgument { .. }
-            | Error::UnknownScene(_)
-            | Error::UnknownCamera { .. }
-            | Error::LateBatch { .. }
-            | Error::DuplicateBatch { .. }
+        Error::Core(
+            CoreError::InvalidArgument { .. }
+                | CoreError::UnknownScene(_)
+                | CoreError::UnknownCamera { .. }
+                | CoreError::DuplicateBatch { .. }
+        ) | Error::LateBatch { .. }
             | Error::FrameOutOfRange { .. }
             | Error::ResourceExhausted(_)
     )

@@ -1,6 +1,8 @@
-//! The project's one domain error type. Every crate returns it; the server maps it exactly
-//! once per transport (gRPC status codes in `crossview_serve::transport::grpc`, HTTP statuses in
-//! `crossview_serve::transport::http`) and counts it by [`Error::kind`] in one place.
+//! The method's error type: what the model, the data readers, training, evaluation and the
+//! association itself can run into. The library crates return it; the server wraps it in its
+//! own error (`crossview_serve::Error::Core`), next to what only serving can run into (late
+//! batches, full queues, missed deadlines, credentials, shutdown), and maps that once per
+//! transport.
 use std::path::PathBuf;
 
 /// Result alias used across the crates.
@@ -9,7 +11,7 @@ pub type Result<T, E = Error> = std::result::Result<T, E>;
 /// A boxed error kept as the `source` of a wrapping variant.
 pub(crate) type BoxError = Box<dyn std::error::Error + Send + Sync + 'static>;
 
-/// Everything that can go wrong in crossview, phrased so the message names the problem.
+/// Everything that can go wrong in the method, phrased so the message names the problem.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// A file could not be read or written.
@@ -58,15 +60,6 @@ pub enum Error {
         #[source]
         source: Option<BoxError>,
     },
-    /// A batch arrived for a frame that was already emitted.
-    #[error(
-        "late batch: frame {frame_id} of scene '{scene}' was already emitted (camera '{camera}')"
-    )]
-    LateBatch {
-        scene: String,
-        camera: String,
-        frame_id: u64,
-    },
     /// A second batch for the same camera and frame.
     #[error(
         "duplicate batch: camera '{camera}' already reported frame {frame_id} of scene '{scene}'"
@@ -76,40 +69,9 @@ pub enum Error {
         camera: String,
         frame_id: u64,
     },
-    /// A batch's frame id is too far from the scene's current frame ids (the frame-id window,
-    /// `crossview serve --frame-window`); it was refused and changed nothing.
-    #[error(
-        "frame id {frame_id} of camera '{camera}' is out of range for scene '{scene}': {reason}"
-    )]
-    FrameOutOfRange {
-        scene: String,
-        camera: String,
-        frame_id: u64,
-        reason: String,
-    },
-    /// A bounded queue or limit is full; the caller should back off and retry.
-    #[error("resource exhausted: {0}")]
-    ResourceExhausted(String),
-    /// A frame waited longer than its deadline for inference and was not associated
-    /// (`crossview serve --frame-deadline`); like [`Error::ResourceExhausted`], back off.
-    #[error("deadline exceeded: {0}")]
-    DeadlineExceeded(String),
-    /// A result subscriber stopped reading and was dropped (`--subscriber-stall-timeout`).
-    #[error("subscriber stalled: {0}")]
-    SubscriberStalled(String),
-    /// Missing or wrong credentials.
-    #[error("unauthenticated: {0}")]
-    Unauthenticated(String),
-    /// The service is not (or no longer) accepting work, e.g. during shutdown.
-    #[error("unavailable: {0}")]
-    Unavailable(String),
     /// Training could not run on the given data or configuration.
     #[error("training: {0}")]
     Training(String),
-    /// The scene was declared by its cameras and has no model yet: batches are accepted and
-    /// published unassociated, an `associate` call cannot be answered.
-    #[error("scene '{0}' has no model yet (declared by its cameras; load one and reload)")]
-    NoModel(String),
 }
 
 impl Error {
@@ -186,16 +148,8 @@ impl Error {
             Error::Runtime { .. } => "runtime",
             Error::Encoder(_) => "encoder",
             Error::Internal { .. } => "internal",
-            Error::LateBatch { .. } => "late",
             Error::DuplicateBatch { .. } => "duplicate",
-            Error::FrameOutOfRange { .. } => "out_of_range",
-            Error::ResourceExhausted(_) => "resource_exhausted",
-            Error::DeadlineExceeded(_) => "deadline_exceeded",
-            Error::SubscriberStalled(_) => "subscriber_stalled",
-            Error::Unauthenticated(_) => "unauthenticated",
-            Error::Unavailable(_) => "unavailable",
             Error::Training(_) => "training",
-            Error::NoModel(_) => "no_model",
         }
     }
 }

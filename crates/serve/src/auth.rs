@@ -15,7 +15,7 @@ use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 
 use super::metrics::Metrics;
-use crossview_core::Error;
+use crate::error::Error;
 
 /// The accepted keys (empty = authentication off).
 #[derive(Clone)]

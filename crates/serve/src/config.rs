@@ -3,8 +3,9 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
+use crate::error::{Error, Result};
 use crossview_core::tracking::TrackerConfig;
-use crossview_core::{CameraSpec, Error, Result, SceneSpec};
+use crossview_core::{CameraSpec, SceneSpec};
 
 /// A model to serve: scene `name` from ONNX file `path`.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -65,7 +66,7 @@ impl SceneDecl {
             _ => {
                 // Only the first line: a recording may be gigabytes, a header is small.
                 use std::io::{BufRead, Read};
-                let io = |e| Error::Io {
+                let io = |e| crossview_core::Error::Io {
                     path: s.into(),
                     source: e,
                 };

@@ -6,10 +6,11 @@
 //! model swaps, [`record`] the recording of accepted batches (`--record`), [`service`] the one
 //! domain API; the [`transport`]s, one folder each — [`transport::grpc`] (with the `Push` and
 //! `Stream` calls' own request framing), [`transport::http`] (with the live viewer) and
-//! [`transport::kafka`] — each mapping the one domain error in its own way (wire types and
-//! conversions: `crossview-api`); cross-cutting — [`config`], [`auth`], [`body`], `conn`,
-//! [`tls`], [`metrics`]; `router` binds the transports and the middleware into one router,
-//! and this module runs it on one listener with graceful shutdown.
+//! [`transport::kafka`] — each mapping the one server [`Error`] in its own way (wire types and
+//! conversions: `crossview-api`); cross-cutting — [`error`] (the method's errors, wrapped,
+//! and serving's own), [`config`], [`auth`], [`body`], `conn`, [`tls`], [`metrics`]; `router`
+//! binds the transports and the middleware into one router, and this module runs it on one
+//! listener with graceful shutdown.
 //!
 //! Where things go: a new transport in `transport/<name>/`, calling [`Service`]; a new scene
 //! setting in [`scene::SceneOptions`] (and the flag in [`config`]); a new Kafka option in
@@ -24,6 +25,7 @@ pub mod config;
 pub(crate) mod conn;
 pub mod cost;
 mod echo;
+pub mod error;
 mod locks;
 pub mod metrics;
 pub mod record;
@@ -50,6 +52,7 @@ use tokio::net::TcpListener;
 use tower::ServiceExt;
 
 pub use config::{ConnectionLimits, Limits, ModelSpec, ServeConfig, TlsConfig};
+pub use error::{Error, Result};
 pub use record::RecordConfig;
 pub use registry::SceneInfo;
 pub use scene::Scene;
@@ -57,7 +60,6 @@ pub use service::Service;
 pub use transport::kafka::{KafkaConfig, ValueFormat};
 
 use crossview_core::Encoder;
-use crossview_core::{Error, Result};
 
 /// A configured server with its scenes started, ready to [`serve`](Server::serve).
 #[derive(Debug)]

@@ -6,10 +6,10 @@ use std::path::Path;
 use sha2::{Digest, Sha256};
 
 use super::config::{Limits, ModelSpec};
+use crate::error::Result;
 use crossview_core::Encoder;
 use crossview_core::SceneSpec;
 use crossview_core::association::AssociationConfig;
-use crossview_core::{Error, Result};
 use crossview_model::{ModelMetadata, OnnxEncoder};
 
 /// What a model file says about its scene: name and cameras, association settings, version.
@@ -33,14 +33,15 @@ pub fn scene_info(
     limits: &Limits,
 ) -> Result<SceneInfo> {
     if meta.cameras.is_empty() || meta.cameras.len() > limits.max_cameras {
-        return Err(Error::model(
+        return Err(crossview_core::Error::model(
             name,
             format!(
                 "{} cameras; 1..={} are supported",
                 meta.cameras.len(),
                 limits.max_cameras
             ),
-        ));
+        )
+        .into());
     }
     Ok(SceneInfo {
         spec: SceneSpec {
@@ -85,9 +86,12 @@ pub(crate) fn load_model_bytes(
 }
 
 fn read(path: &Path) -> Result<Vec<u8>> {
-    std::fs::read(path).map_err(|e| Error::Io {
-        path: path.to_path_buf(),
-        source: e,
+    std::fs::read(path).map_err(|e| {
+        crossview_core::Error::Io {
+            path: path.to_path_buf(),
+            source: e,
+        }
+        .into()
     })
 }
 
@@ -112,12 +116,13 @@ pub(crate) fn check_fits(scene: &SceneSpec, new: &SceneInfo) -> Result<()> {
             .collect::<Vec<_>>()
             .join(",")
     };
-    Err(Error::model(
+    Err(crossview_core::Error::model(
         &scene.name,
         format!(
             "the model is for cameras {} but the scene has {}",
             describe(&new.spec),
             describe(scene)
         ),
-    ))
+    )
+    .into())
 }

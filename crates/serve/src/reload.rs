@@ -8,10 +8,10 @@
 use std::sync::Arc;
 
 use crate::config::{Limits, ModelSpec};
+use crate::error::{Error, Result};
 use crate::metrics::Metrics;
 use crate::registry;
 use crate::scene::Scene;
-use crossview_core::{Error, Result};
 
 pub use crossview_api::types::ReloadOutcome;
 

@@ -12,11 +12,11 @@ use axum::response::{IntoResponse, Response};
 use tower::ServiceExt;
 
 use crate::config::ServeConfig;
+use crate::error::{Error, Result};
 use crate::service::Service;
 use crate::transport::grpc::{self, push};
 use crate::transport::http;
 use crate::{auth, body, metrics};
-use crossview_core::{Error, Result};
 
 /// A tonic service mounted on an axum path prefix; each request body is bounded per message
 /// by `body_timeout` ([`body::GrpcMessageDeadline`]).

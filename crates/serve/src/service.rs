@@ -17,9 +17,9 @@ use super::metrics::Metrics;
 use super::reload::{ReloadOutcome, Reloader};
 use super::scene::{Published, Scene};
 use super::subscribers::Subscribers;
+use crate::error::{Error, Result};
 use crossview_api::types::{AssociateRequest, BatchAck, FrameResult, SceneDescription};
 use crossview_core::Batch;
-use crossview_core::{Error, Result};
 
 /// A stream of one scene's frame results (each with the frame's boxes: `.result` is what
 /// subscribers get unless they asked for the boxes), in frame-id order. It ends after
@@ -114,7 +114,7 @@ impl Service {
         self.track(
             self.scenes
                 .get(name)
-                .ok_or_else(|| Error::UnknownScene(name.to_string())),
+                .ok_or_else(|| crossview_core::Error::UnknownScene(name.to_string()).into()),
         )
     }
 

@@ -26,9 +26,9 @@ use std::sync::{Arc, Mutex, Weak};
 
 use crate::config::ConnectionLimits;
 use crate::conn::ConnHandle;
+use crate::error::{Error, Result};
 use crate::metrics::Metrics;
 use crate::scene::Scene;
-use crossview_core::{Error, Result};
 
 /// Bytes of encoded results the transport may hold for one stream that is not read (the
 /// HTTP/2 send buffer and the HTTP/1 write buffer are set to it).

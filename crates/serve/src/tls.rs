@@ -6,14 +6,14 @@ use tokio_rustls::TlsAcceptor;
 use tokio_rustls::rustls::ServerConfig;
 
 use super::config::TlsConfig;
-use crossview_core::{Error, Result};
+use crate::error::{Error, Result};
 
 /// Builds the acceptor; any unreadable or invalid file is an error naming it.
 pub(crate) fn acceptor(cfg: &TlsConfig) -> Result<TlsAcceptor> {
-    let read = |p: &std::path::Path| std::fs::read(p).map_err(|e| Error::io(p, e));
+    let read = |p: &std::path::Path| std::fs::read(p).map_err(|e| crossview_core::Error::io(p, e));
     let cert_pem = read(&cfg.cert)?;
     let key_pem = read(&cfg.key)?;
-    let bad = |p: &std::path::Path, m: String| Error::Format {
+    let bad = |p: &std::path::Path, m: String| crossview_core::Error::Format {
         source_name: p.display().to_string(),
         line: 0,
         message: m,
@@ -22,7 +22,7 @@ pub(crate) fn acceptor(cfg: &TlsConfig) -> Result<TlsAcceptor> {
         .collect::<std::result::Result<Vec<_>, _>>()
         .map_err(|e| bad(&cfg.cert, format!("bad certificate PEM: {e}")))?;
     if certs.is_empty() {
-        return Err(bad(&cfg.cert, "no certificate found".into()));
+        return Err(bad(&cfg.cert, "no certificate found".into()).into());
     }
     let key = rustls_pemfile::private_key(&mut key_pem.as_slice())
         .map_err(|e| bad(&cfg.key, format!("bad key PEM: {e}")))?

@@ -88,7 +88,7 @@ pub struct TestServer {
     pub addr: SocketAddr,
     pub dir: tempfile::TempDir,
     stop: Option<oneshot::Sender<()>>,
-    task: Option<tokio::task::JoinHandle<crossview_core::Result<()>>>,
+    task: Option<tokio::task::JoinHandle<crossview_serve::Result<()>>>,
 }
 
 /// Starts a server with scene `lab` (3 cameras); `configure` adjusts the configuration.
@@ -217,7 +217,7 @@ impl TestServer {
     }
 
     /// Triggers graceful shutdown and waits for `run` to return.
-    pub async fn shutdown(mut self) -> crossview_core::Result<()> {
+    pub async fn shutdown(mut self) -> crossview_serve::Result<()> {
         if let Some(tx) = self.stop.take() {
             let _ = tx.send(());
         }

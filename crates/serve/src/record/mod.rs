@@ -40,8 +40,9 @@ use std::sync::mpsc::Sender;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use crossview_core::{Detection, Error, Result, SceneSpec};
+use crossview_core::{Detection, SceneSpec};
 
+use crate::error::{Error, Result};
 use crate::metrics::Metrics;
 use writer::Writer;
 

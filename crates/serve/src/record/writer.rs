@@ -11,9 +11,10 @@ use std::sync::mpsc::{Receiver, TryRecvError};
 use std::time::{Duration, Instant};
 
 use super::{Msg, RecordConfig, WRITE_CHUNK};
+use crate::error::{Error, Result};
 use crate::metrics::Metrics;
 use crossview_core::types::{BatchLine, HeaderLine};
-use crossview_core::{Detection, Error, Result, SceneSpec};
+use crossview_core::{Detection, SceneSpec};
 
 /// A recording file under `DIR`.
 #[derive(Debug)]
@@ -121,7 +122,7 @@ fn repair(path: &Path) -> std::io::Result<Option<u64>> {
 }
 
 fn io_err(path: &Path, e: std::io::Error) -> Error {
-    Error::io(path, e)
+    crossview_core::Error::io(path, e).into()
 }
 
 impl Writer {

@@ -4,10 +4,9 @@
 //! queued for the worker in frame-id order.
 use std::sync::atomic::Ordering;
 
-use crossview_core::{Error, Result};
-
 use super::worker::Job;
 use super::{Intake, Scene};
+use crate::error::{Error, Result};
 use crate::sync::Emitted;
 
 impl Scene {

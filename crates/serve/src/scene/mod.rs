@@ -26,9 +26,10 @@ use tokio::sync::{Notify, broadcast, oneshot};
 
 use crossview_api::types::{ClockEstimate, FrameResult, SceneDescription};
 use crossview_core::tracking::{Tracker, TrackerConfig};
-use crossview_core::{Detection, Encoder, Error, Frame, Result, SceneSpec};
+use crossview_core::{Detection, Encoder, Frame, SceneSpec};
 
 use crate::config::Limits;
+use crate::error::{Error, Result};
 use crate::metrics::Metrics;
 use crate::record::SceneRecorder;
 use crate::sync::{Rejection, Synchronizer};
@@ -349,11 +350,12 @@ impl Scene {
             }
             Rejection::Duplicate => {
                 self.metrics.duplicate(self.name());
-                Error::DuplicateBatch {
+                crossview_core::Error::DuplicateBatch {
                     scene,
                     camera,
                     frame_id,
                 }
+                .into()
             }
             Rejection::OutOfRange => {
                 self.metrics.out_of_range(self.name());

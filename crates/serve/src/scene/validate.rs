@@ -3,10 +3,11 @@
 //! budget ([`crate::cost`]).
 use std::sync::atomic::Ordering;
 
-use crossview_core::{Detection, Error, Result};
+use crossview_core::Detection;
 
 use super::Scene;
 use crate::cost::frame_cost;
+use crate::error::{Error, Result};
 
 /// Largest accepted magnitude of an appearance value: small enough that squared distances stay
 /// finite in `f32`. (Box coordinates are bounded by clipping to the image.)

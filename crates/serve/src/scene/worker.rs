@@ -18,9 +18,10 @@ use crossview_api::types::{FrameResult, FrameWithBoxes, IdentityOut, ResultStatu
 use crossview_core::association::{embed_frame, frame_identities};
 use crossview_core::identity::Identity;
 use crossview_core::tracking::Tracker;
-use crossview_core::{Encoder, Error, Frame, FrameEmbeddings, Result, SceneSpec};
+use crossview_core::{Encoder, Frame, FrameEmbeddings, SceneSpec};
 
 use super::{SceneInfo, lock};
+use crate::error::{Error, Result};
 use crate::metrics::Metrics;
 use crate::sync::Emitted;
 
@@ -208,7 +209,7 @@ impl Worker {
     }
 
     /// Embeds the frame in one encoder call and builds its identities (SPEC §3); a panic in
-    /// the method becomes an [`Error::Internal`] instead of taking the scene down.
+    /// the method becomes a [`crossview_core::Error::Internal`] instead of taking the scene down.
     fn associate(&mut self, frame: &Frame) -> Result<(Vec<Identity>, FrameEmbeddings)> {
         let spec = &self.spec;
         let model = self
@@ -218,12 +219,13 @@ impl Worker {
         let t = Instant::now();
         let encoder = model.encoder.as_mut();
         let config = &model.info.association;
-        let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            let embeddings = embed_frame(encoder, spec, frame)?;
-            let identities = frame_identities(frame, &embeddings, config);
-            Ok((identities, embeddings))
-        }))
-        .unwrap_or_else(|_| Err(Error::internal("association panicked")));
+        let outcome: crossview_core::Result<_> =
+            std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                let embeddings = embed_frame(encoder, spec, frame)?;
+                let identities = frame_identities(frame, &embeddings, config);
+                Ok((identities, embeddings))
+            }))
+            .unwrap_or_else(|_| Err(crossview_core::Error::internal("association panicked")));
         self.metrics.inference(&spec.name, t.elapsed());
         match outcome {
             Ok(done) => Ok(done),
@@ -234,7 +236,7 @@ impl Worker {
                     error = %e.report(),
                     "association failed"
                 );
-                Err(e)
+                Err(e.into())
             }
         }
     }

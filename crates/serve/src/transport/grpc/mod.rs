@@ -13,8 +13,8 @@ use crossview_api::convert::{
     associate_from_pb, batch_from_pb, reload_to_pb, result_to_pb, scene_to_pb,
 };
 use crossview_api::pb;
-use crossview_core::Error;
 
+use crate::error::Error;
 use crate::service::Service;
 
 /// The gRPC methods this server serves: the only gRPC label values besides `other`.
@@ -33,39 +33,40 @@ pub(crate) const METHODS: &[&str] = &[
 
 /// The one `Error → gRPC status` mapping; the message is the error's, truncated.
 pub(crate) fn status(e: Error) -> Status {
-    {
-        let code = match &e {
-            Error::InvalidArgument { .. } | Error::Format { .. } => Code::InvalidArgument,
-            Error::UnknownScene(_) | Error::UnknownCamera { .. } => Code::NotFound,
-            Error::LateBatch { .. } | Error::NoModel(_) => Code::FailedPrecondition,
-            Error::DuplicateBatch { .. } => Code::AlreadyExists,
-            Error::FrameOutOfRange { .. } => Code::OutOfRange,
-            Error::ResourceExhausted(_)
-            | Error::DeadlineExceeded(_)
-            | Error::SubscriberStalled(_) => Code::ResourceExhausted,
-            Error::Unauthenticated(_) => Code::Unauthenticated,
-            Error::Unavailable(_) => Code::Unavailable,
-            Error::Io { .. }
-            | Error::Model { .. }
-            | Error::Runtime { .. }
-            | Error::Encoder(_)
-            | Error::Internal { .. }
-            | Error::Training(_) => Code::Internal,
-        };
-        Status::new(code, crate::echo::truncate_echo(&e.report()))
-    }
+    use crossview_core::Error as Core;
+    let code = match &e {
+        Error::Core(c) => match c {
+            Core::InvalidArgument { .. } | Core::Format { .. } => Code::InvalidArgument,
+            Core::UnknownScene(_) | Core::UnknownCamera { .. } => Code::NotFound,
+            Core::DuplicateBatch { .. } => Code::AlreadyExists,
+            Core::Io { .. }
+            | Core::Model { .. }
+            | Core::Runtime { .. }
+            | Core::Encoder(_)
+            | Core::Internal { .. }
+            | Core::Training(_) => Code::Internal,
+        },
+        Error::LateBatch { .. } | Error::NoModel(_) => Code::FailedPrecondition,
+        Error::FrameOutOfRange { .. } => Code::OutOfRange,
+        Error::ResourceExhausted(_) | Error::DeadlineExceeded(_) | Error::SubscriberStalled(_) => {
+            Code::ResourceExhausted
+        }
+        Error::Unauthenticated(_) => Code::Unauthenticated,
+        Error::Unavailable(_) => Code::Unavailable,
+    };
+    Status::new(code, crate::echo::truncate_echo(&e.report()))
 }
 
 /// Pushes one protobuf batch — or a message that did not decode as one (see [`super::push`])
 /// — and turns the outcome into its acknowledgement. An undecodable message's ack has no
 /// scene, camera or frame id: acks come in message order.
-fn push_one(svc: &Service, b: crossview_core::Result<pb::Batch>) -> pb::BatchAck {
+fn push_one(svc: &Service, b: crate::error::Result<pb::Batch>) -> pb::BatchAck {
     let (scene, camera, frame_id) = match &b {
         Ok(b) => (echo(&b.scene), echo(&b.camera), b.frame_id),
         Err(_) => (String::new(), String::new(), 0),
     };
     let outcome = b
-        .and_then(batch_from_pb)
+        .and_then(|b| Ok(batch_from_pb(b)?))
         .inspect_err(|e| svc.metrics().error(e))
         .and_then(|(scene, batch)| svc.push(&scene, batch));
     let (code, message, kind) = match outcome {
@@ -90,7 +91,7 @@ pub(crate) type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Se
 
 /// One item of what a `Push` or `Stream` call reads: a batch, or a message that is not one
 /// (see [`super::push`]); or the status the transport ends the call with (the call's status).
-pub(crate) type Incoming = Result<crossview_core::Result<pb::Batch>, Status>;
+pub(crate) type Incoming = Result<crate::error::Result<pb::Batch>, Status>;
 
 /// Forwards a `Stream` call's scene results to its response until the call is over: the client
 /// cancelled (the subscriber is dropped at once, not at the next frame), the scene's results
@@ -281,6 +282,7 @@ impl pb::association_server::Association for GrpcService {
         request: Request<pb::AssociateRequest>,
     ) -> Result<Response<pb::FrameResult>, Status> {
         let (scene, req) = associate_from_pb(request.into_inner())
+            .map_err(Error::from)
             .inspect_err(|e| self.svc.metrics().error(e))
             .map_err(status)?;
         let r = self.svc.associate(&scene, req).await.map_err(status)?;

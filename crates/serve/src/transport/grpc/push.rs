@@ -10,7 +10,7 @@
 //!   payload as it came, or, for a message over the limit, only its declared length, once its
 //!   bytes have all arrived and been discarded (constant memory; the time is the client's own
 //!   upload, and `--body-timeout` still bounds each message);
-//! - [`Decoder`] never fails a well-framed message: it yields the batch, or the domain error
+//! - [`Decoder`] never fails a well-framed message: it yields the batch, or the error
 //!   (INVALID_ARGUMENT, with prost's account of the offending field) that
 //!   [`GrpcService::push_acks`] and [`GrpcService::stream_responses`] acknowledge like any
 //!   other refused batch;
@@ -34,9 +34,9 @@ use tonic::server::NamedService;
 use tonic::{Request, Response, Status, Streaming};
 
 use super::{BoxStream, GrpcService};
+use crate::error::Error;
 use crossview_api::pb;
 use crossview_api::pb::association_server::AssociationServer;
-use crossview_core::Error;
 
 /// The paths of the methods served here.
 pub(crate) const PUSH_PATH: &str = "/crossview.v1.Association/Push";
@@ -48,7 +48,7 @@ const TAG_MESSAGE: u8 = 0;
 const TAG_TOO_LARGE: u8 = 1;
 
 /// What one `Push` or `Stream` message decodes to: a batch, or why it is not one.
-pub type Item = crossview_core::Result<pb::Batch>;
+pub type Item = crate::error::Result<pb::Batch>;
 
 /// The association service's routes: `Push` and `Stream` with the framing of this module, the
 /// rest by the generated server.

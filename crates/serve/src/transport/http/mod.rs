@@ -17,33 +17,34 @@ use axum::{Json, Router};
 use futures::StreamExt;
 use serde::de::DeserializeOwned;
 
+use crate::error::Error;
 use crate::metrics::UncountedError;
 use crate::service::Service;
 use crossview_api::types::{AssociateRequest, BatchAck, EventsQuery};
 use crossview_core::Batch;
-use crossview_core::Error;
 
 /// The HTTP status of each error.
 pub(crate) fn status_of(e: &Error) -> StatusCode {
+    use crossview_core::Error as Core;
     match e {
-        Error::InvalidArgument { .. } | Error::Format { .. } | Error::FrameOutOfRange { .. } => {
-            StatusCode::UNPROCESSABLE_ENTITY
-        }
-        Error::UnknownScene(_) | Error::UnknownCamera { .. } => StatusCode::NOT_FOUND,
-        Error::LateBatch { .. } | Error::DuplicateBatch { .. } | Error::NoModel(_) => {
-            StatusCode::CONFLICT
-        }
+        Error::Core(c) => match c {
+            Core::InvalidArgument { .. } | Core::Format { .. } => StatusCode::UNPROCESSABLE_ENTITY,
+            Core::UnknownScene(_) | Core::UnknownCamera { .. } => StatusCode::NOT_FOUND,
+            Core::DuplicateBatch { .. } => StatusCode::CONFLICT,
+            Core::Io { .. }
+            | Core::Model { .. }
+            | Core::Runtime { .. }
+            | Core::Encoder(_)
+            | Core::Internal { .. }
+            | Core::Training(_) => StatusCode::INTERNAL_SERVER_ERROR,
+        },
+        Error::FrameOutOfRange { .. } => StatusCode::UNPROCESSABLE_ENTITY,
+        Error::LateBatch { .. } | Error::NoModel(_) => StatusCode::CONFLICT,
         Error::ResourceExhausted(_) | Error::DeadlineExceeded(_) | Error::SubscriberStalled(_) => {
             StatusCode::TOO_MANY_REQUESTS
         }
         Error::Unauthenticated(_) => StatusCode::UNAUTHORIZED,
         Error::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
-        Error::Io { .. }
-        | Error::Model { .. }
-        | Error::Runtime { .. }
-        | Error::Encoder(_)
-        | Error::Internal { .. }
-        | Error::Training(_) => StatusCode::INTERNAL_SERVER_ERROR,
     }
 }
 
@@ -63,7 +64,9 @@ impl IntoResponse for HttpError {
         let HttpError(e) = self;
         let status = status_of(&e);
         let field = match &e {
-            Error::InvalidArgument { field, .. } => Some(field.clone()),
+            Error::Core(crossview_core::Error::InvalidArgument { field, .. }) => {
+                Some(field.clone())
+            }
             _ => None,
         };
         let message = crate::echo::truncate_echo(&e.report()).into_owned();
@@ -119,7 +122,7 @@ fn unsupported_media_type(got: Option<&str>, want: &str) -> Response {
 }
 
 /// A JSON body (`Content-Type: application/json`, else 415) whose decoding errors are
-/// [`Error::InvalidArgument`] (422, naming `body`), while the body-size limit still answers 413.
+/// `InvalidArgument` (422, naming `body`), while the body-size limit still answers 413.
 pub(crate) struct JsonBody<T>(pub T);
 
 impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for JsonBody<T> {
@@ -328,7 +331,8 @@ impl LineRun {
                     serde_json::json!({ "line": self.line_no, "accepted": true, "camera": ack.camera, "frame_id": ack.frame_id })
                 }
                 Some(Err(e)) => {
-                    if matches!(e, Error::InvalidArgument { ref field, .. } if field == "body") {
+                    if matches!(e, Error::Core(crossview_core::Error::InvalidArgument { ref field, .. }) if field == "body")
+                    {
                         self.svc.metrics().error(&e);
                     }
                     self.rejected += 1;

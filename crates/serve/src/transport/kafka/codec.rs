@@ -4,10 +4,11 @@ use rdkafka::message::Message;
 
 use crossview_api::convert::{batch_from_pb, result_to_pb};
 use crossview_api::pb;
-use crossview_core::{Batch, Error, Result};
+use crossview_core::Batch;
 use prost::Message as _;
 
 use super::ValueFormat;
+use crate::error::{Error, Result};
 
 /// The format a record's `content-type` header names: `None` without the header, an error
 /// for a type we do not read.

@@ -1,8 +1,8 @@
 //! Settings of Kafka mode and the librdkafka client configurations built from them.
 use rdkafka::config::ClientConfig;
 
+use crate::error::{Error, Result};
 pub use crossview_api::format::ValueFormat;
-use crossview_core::{Error, Result};
 
 /// Settings of Kafka mode (`crossview serve --kafka-*`).
 #[derive(Clone)]

@@ -9,8 +9,8 @@ use rdkafka::util::Timeout;
 
 use super::codec::{content_type, decode};
 use super::{Kafka, ValueFormat};
+use crate::error::{Error, Result};
 use crate::locks::lock;
-use crossview_core::{Error, Result};
 
 /// One consumed input record.
 struct Record<'a> {
@@ -106,7 +106,11 @@ impl Kafka {
                 Err(Error::Unavailable(_)) => return Handled::Stop,
                 Err(e) => {
                     let again = r.redelivered
-                        && matches!(e, Error::LateBatch { .. } | Error::DuplicateBatch { .. });
+                        && matches!(
+                            e,
+                            Error::LateBatch { .. }
+                                | Error::Core(crossview_core::Error::DuplicateBatch { .. })
+                        );
                     if created {
                         // No result will hold it; a frame already pending here keeps it
                         // (its result closes the offset).

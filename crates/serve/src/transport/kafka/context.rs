@@ -5,7 +5,7 @@ use std::sync::{Arc, Mutex};
 use rdkafka::consumer::{BaseConsumer, CommitMode, Consumer, ConsumerContext, Rebalance};
 use rdkafka::{ClientContext, Offset, Statistics, TopicPartitionList};
 
-use crossview_core::{Error, Result};
+use crate::error::{Error, Result};
 
 use super::offsets::Ownership;
 use super::{lock, now_ms};

@@ -29,7 +29,7 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 use rdkafka::consumer::{CommitMode, Consumer, StreamConsumer};
 use rdkafka::producer::FutureProducer;
 
-use crossview_core::{Error, Result};
+use crate::error::{Error, Result};
 
 use crate::metrics::Metrics;
 use crate::service::Service;
