@@ -10,7 +10,7 @@
 //! conversions: `crossview-api`); cross-cutting — [`error`] (the method's errors, wrapped,
 //! and serving's own), [`config`], [`auth`], [`body`], `conn`, [`tls`], [`metrics`]; `router`
 //! binds the transports and the middleware into one router, and this module runs it on one
-//! listener with graceful shutdown.
+//! listener with graceful shutdown. The layers drawn, for a newcomer: the crate's `README.md`.
 //!
 //! Where things go: a new transport in `transport/<name>/`, calling [`Service`]; a new scene
 //! setting in [`scene::SceneOptions`] (and the flag in [`config`]); a new Kafka option in
