@@ -54,14 +54,13 @@ async fn bad_inputs_get_the_right_status() {
     let ack = push_one(&mut client, b).await;
     assert_eq!(ack.code, Code::InvalidArgument as i32);
     assert!(ack.message.contains("detections[1].bbox"), "{ack:?}");
-    let r = http
-        .post(&batches)
-        .json(&serde_json::json!({"camera":"c0","frame_id":1,"detections":[{"bbox":[10,10,5,20]}]}))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 422);
-    let body: serde_json::Value = r.json().await.unwrap();
+    let (status, body) = server
+        .post_json(
+            "/v1/scenes/lab/batches",
+            &serde_json::json!({"camera":"c0","frame_id":1,"detections":[{"bbox":[10,10,5,20]}]}),
+        )
+        .await;
+    assert_eq!(status, 422);
     assert_eq!(body["error"]["field"], "detections[0].bbox");
 
     // Missing box in protobuf.
@@ -79,13 +78,13 @@ async fn bad_inputs_get_the_right_status() {
     let mut b = batch(0, 1, 1);
     b.scene = "nowhere".into();
     assert_eq!(push_one(&mut client, b).await.code, Code::NotFound as i32);
-    let r = http
-        .post(&batches)
-        .json(&serde_json::json!({"camera":"nope","frame_id":1,"detections":[]}))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 404);
+    let (status, _) = server
+        .post_json(
+            "/v1/scenes/lab/batches",
+            &serde_json::json!({"camera":"nope","frame_id":1,"detections":[]}),
+        )
+        .await;
+    assert_eq!(status, 404);
     let r = http
         .get(server.url("/v1/scenes/nowhere"))
         .send()
@@ -105,8 +104,8 @@ async fn bad_inputs_get_the_right_status() {
         "camera": "c0", "frame_id": 1,
         "detections": vec![serde_json::json!({"bbox": [1.0, 2.0, 3.0, 4.0], "appearance": vec![0.5f32; 512]}); 40],
     });
-    let r = http.post(&batches).json(&big).send().await.unwrap();
-    assert_eq!(r.status(), 413);
+    let (status, _) = server.post_json("/v1/scenes/lab/batches", &big).await;
+    assert_eq!(status, 413);
     let mut b = batch(0, 1, 40);
     for d in &mut b.detections {
         d.appearance = vec![0.5; 512];
@@ -140,14 +139,9 @@ async fn bad_inputs_get_the_right_status() {
     let ack = push_one(&mut client, b).await;
     assert_eq!(ack.code, Code::InvalidArgument as i32);
     assert!(ack.message.contains("appearance"), "{ack:?}");
-    let r = http
-        .post(&batches)
-        .json(&serde_json::json!({"camera":"c2","frame_id":2,"detections":[{"bbox":[1,2,3,4],"appearance":[1,2,3]}]}))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 422);
-    let body: serde_json::Value = r.json().await.unwrap();
+    let b = serde_json::json!({"camera":"c2","frame_id":2,"detections":[{"bbox":[1,2,3,4],"appearance":[1,2,3]}]});
+    let (status, body) = server.post_json("/v1/scenes/lab/batches", &b).await;
+    assert_eq!(status, 422);
     assert_eq!(body["error"]["field"], "detections[0].appearance");
 
     // Malformed JSON and a wrong type.
@@ -159,13 +153,13 @@ async fn bad_inputs_get_the_right_status() {
         .await
         .unwrap();
     assert_eq!(r.status(), 422);
-    let r = http
-        .post(server.url("/v1/scenes/lab/associate"))
-        .json(&serde_json::json!({"frame_id": -1, "views": []}))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 422);
+    let (status, _) = server
+        .post_json(
+            "/v1/scenes/lab/associate",
+            &serde_json::json!({"frame_id": -1, "views": []}),
+        )
+        .await;
+    assert_eq!(status, 422);
 
     let m = server.metrics().await;
     assert!(
@@ -200,13 +194,10 @@ async fn bearer_token_is_required_except_for_health_and_metrics() {
         .await
         .unwrap();
     assert_eq!(r.status(), 200);
-    let r = http
-        .post(server.url("/v1/scenes/lab/batches"))
-        .json(&batch_json(0, 1, 1))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 401);
+    let (status, _) = server
+        .post_json("/v1/scenes/lab/batches", &batch_json(0, 1, 1))
+        .await;
+    assert_eq!(status, 401);
     for open in ["/healthz", "/readyz", "/metrics"] {
         assert_eq!(
             http.get(server.url(open)).send().await.unwrap().status(),
@@ -283,13 +274,10 @@ async fn full_queue_sheds_load() {
         .await
         .unwrap_err();
     assert_eq!(e.code(), Code::ResourceExhausted);
-    let r = reqwest::Client::new()
-        .post(server.url("/v1/scenes/lab/batches"))
-        .json(&batch_json(0, 1, 1))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 429);
+    let (status, _) = server
+        .post_json("/v1/scenes/lab/batches", &batch_json(0, 1, 1))
+        .await;
+    assert_eq!(status, 429);
     let m = server.metrics().await;
     assert_eq!(metric(&m, "crossview_batches_total{scene=\"lab\"}"), 0.0);
     assert_eq!(

@@ -22,37 +22,28 @@ fn with_appearance(mut b: serde_json::Value, len: usize) -> serde_json::Value {
 async fn only_an_accepted_batch_fixes_the_appearance_length() {
     let server = start(|_| {}).await;
     let http = reqwest::Client::new();
-    let batches = server.url("/v1/scenes/lab/batches");
     // Frame 5 complete, so frame 3 is late.
     for c in 0..3 {
-        let r = http
-            .post(&batches)
-            .json(&batch_json(c, 5, 1))
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(r.status(), 202);
+        let (status, _) = server
+            .post_json("/v1/scenes/lab/batches", &batch_json(c, 5, 1))
+            .await;
+        assert_eq!(status, 202);
     }
     let late = with_appearance(batch_json(0, 3, 1), 8);
     assert_eq!(
-        http.post(&batches)
-            .json(&late)
-            .send()
-            .await
-            .unwrap()
-            .status(),
+        server.post_json("/v1/scenes/lab/batches", &late).await.0,
         409
     );
     // A unary call with 8 values is answered but fixes nothing either.
     let mut view = with_appearance(batch_json(0, 9, 1), 8);
     view.as_object_mut().unwrap().remove("frame_id");
-    let r = http
-        .post(server.url("/v1/scenes/lab/associate"))
-        .json(&serde_json::json!({ "frame_id": 9, "views": [view] }))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 200);
+    let (status, _) = server
+        .post_json(
+            "/v1/scenes/lab/associate",
+            &serde_json::json!({ "frame_id": 9, "views": [view] }),
+        )
+        .await;
+    assert_eq!(status, 200);
     let scene: serde_json::Value = http
         .get(server.url("/v1/scenes/lab"))
         .send()
@@ -64,10 +55,7 @@ async fn only_an_accepted_batch_fixes_the_appearance_length() {
     assert!(scene["appearance_length"].is_null(), "{scene}");
     // The first accepted batch with vectors fixes it.
     let ok = with_appearance(batch_json(0, 6, 2), 16);
-    assert_eq!(
-        http.post(&batches).json(&ok).send().await.unwrap().status(),
-        202
-    );
+    assert_eq!(server.post_json("/v1/scenes/lab/batches", &ok).await.0, 202);
     let scene: serde_json::Value = http
         .get(server.url("/v1/scenes/lab"))
         .send()
@@ -79,12 +67,7 @@ async fn only_an_accepted_batch_fixes_the_appearance_length() {
     assert_eq!(scene["appearance_length"], 16);
     let other = with_appearance(batch_json(1, 6, 1), 8);
     assert_eq!(
-        http.post(&batches)
-            .json(&other)
-            .send()
-            .await
-            .unwrap()
-            .status(),
+        server.post_json("/v1/scenes/lab/batches", &other).await.0,
         422
     );
     server.shutdown().await.unwrap();
@@ -93,15 +76,10 @@ async fn only_an_accepted_batch_fixes_the_appearance_length() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn edge_boxes_are_clipped_and_counted_outside_boxes_refused() {
     let server = start(|_| {}).await;
-    let http = reqwest::Client::new();
-    let batches = server.url("/v1/scenes/lab/batches");
     // c0 is 1920x1080: y1 = -1 (WILDTRACK's own boxes), x2 one pixel past the edge.
     let b = serde_json::json!({"camera": "c0", "frame_id": 1, "detections": [
         {"bbox": [10, -1, 50, 200]}, {"bbox": [1880, 10, 1921, 200]}, {"bbox": [100, 10, 150, 200]}]});
-    assert_eq!(
-        http.post(&batches).json(&b).send().await.unwrap().status(),
-        202
-    );
+    assert_eq!(server.post_json("/v1/scenes/lab/batches", &b).await.0, 202);
     let m = server.metrics().await;
     assert_eq!(
         metric(&m, "crossview_clipped_boxes_total{scene=\"lab\"}"),
@@ -109,9 +87,8 @@ async fn edge_boxes_are_clipped_and_counted_outside_boxes_refused() {
     );
     // Entirely outside the image: refused, naming the box.
     let b = serde_json::json!({"camera": "c0", "frame_id": 2, "detections": [{"bbox": [5000, 10, 6000, 90]}]});
-    let r = http.post(&batches).json(&b).send().await.unwrap();
-    assert_eq!(r.status(), 422);
-    let v: serde_json::Value = r.json().await.unwrap();
+    let (status, v) = server.post_json("/v1/scenes/lab/batches", &b).await;
+    assert_eq!(status, 422);
     assert_eq!(v["error"]["field"], "detections[0].bbox");
     assert!(
         v["error"]["message"]
@@ -126,23 +103,13 @@ async fn edge_boxes_are_clipped_and_counted_outside_boxes_refused() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn unknown_json_fields_are_ignored_by_every_body() {
     let server = start(|_| {}).await;
-    let http = reqwest::Client::new();
     let mut b = batch_json(0, 1, 1);
     b["note"] = "from a newer client".into();
-    let r = http
-        .post(server.url("/v1/scenes/lab/batches"))
-        .json(&b)
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 202);
-    let r = http
-        .post(server.url("/v1/scenes/lab/associate"))
-        .json(&serde_json::json!({ "frame_id": 3, "views": [{"camera": "c1", "detections": [], "x": 1}], "y": 2 }))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 200);
+    let (status, _) = server.post_json("/v1/scenes/lab/batches", &b).await;
+    assert_eq!(status, 202);
+    let frame = serde_json::json!({ "frame_id": 3, "views": [{"camera": "c1", "detections": [], "x": 1}], "y": 2 });
+    let (status, _) = server.post_json("/v1/scenes/lab/associate", &frame).await;
+    assert_eq!(status, 200);
     server.shutdown().await.unwrap();
 }
 

@@ -55,14 +55,10 @@ async fn the_largest_allowed_frame_answers_within_its_budget_and_a_larger_one_is
     assert!(took < Limits::default().frame_deadline * 10, "{took:?}");
 
     // One box more per camera is over the cost limit: refused, nothing queued.
-    let r = http
-        .post(&url)
-        .json(&associate_body(n + 1))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 422);
-    let v: serde_json::Value = r.json().await.unwrap();
+    let (status, v) = server
+        .post_json("/v1/scenes/lab/associate", &associate_body(n + 1))
+        .await;
+    assert_eq!(status, 422);
     assert!(
         v["error"]["message"]
             .as_str()
@@ -71,23 +67,16 @@ async fn the_largest_allowed_frame_answers_within_its_budget_and_a_larger_one_is
         "{v}"
     );
     // Batch by batch: the batch that would push the frame over the limit is the one refused.
-    let batches = server.url("/v1/scenes/lab/batches");
     for c in 0..2 {
-        let r = http
-            .post(&batches)
-            .json(&batch_json(c, 7, n + 1))
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(r.status(), 202);
+        let (status, _) = server
+            .post_json("/v1/scenes/lab/batches", &batch_json(c, 7, n + 1))
+            .await;
+        assert_eq!(status, 202);
     }
-    let r = http
-        .post(&batches)
-        .json(&batch_json(2, 7, n + 1))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 422);
+    let (status, _) = server
+        .post_json("/v1/scenes/lab/batches", &batch_json(2, 7, n + 1))
+        .await;
+    assert_eq!(status, 422);
     server.shutdown().await.unwrap();
 }
 

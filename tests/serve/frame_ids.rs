@@ -37,14 +37,10 @@ async fn a_huge_frame_id_cannot_deny_the_scene() {
     assert_eq!(codes[4], Code::OutOfRange as i32);
     // The same over HTTP: 422, kind out_of_range. (A different id: two cameras agreeing on
     // one out-of-range id are a majority of three, which restarts the ids, see below.)
-    let r = reqwest::Client::new()
-        .post(server.url("/v1/scenes/lab/batches"))
-        .json(&batch_json(2, 1 << 63, 1))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 422);
-    let body: serde_json::Value = r.json().await.unwrap();
+    let (status, body) = server
+        .post_json("/v1/scenes/lab/batches", &batch_json(2, 1 << 63, 1))
+        .await;
+    assert_eq!(status, 422);
     assert_eq!(body["error"]["kind"], "out_of_range");
     // Normal frames after them are accepted and come out complete.
     let codes = push_all(

@@ -49,34 +49,22 @@ async fn late_and_duplicate_batches_are_rejected_and_counted() {
     assert_eq!(older.code, Code::FailedPrecondition as i32);
 
     // Over HTTP: 409 for both, with the kind in the body.
-    let http = reqwest::Client::new();
-    let url = server.url("/v1/scenes/lab/batches");
-    let r = http
-        .post(&url)
-        .json(&batch_json(0, 5, 1))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 409);
-    let body: serde_json::Value = r.json().await.unwrap();
+    let (status, body) = server
+        .post_json("/v1/scenes/lab/batches", &batch_json(0, 5, 1))
+        .await;
+    assert_eq!(status, 409);
     assert_eq!(body["error"]["kind"], "late");
     assert_eq!(
-        http.post(&url)
-            .json(&batch_json(0, 9, 1))
-            .send()
+        server
+            .post_json("/v1/scenes/lab/batches", &batch_json(0, 9, 1))
             .await
-            .unwrap()
-            .status(),
+            .0,
         202
     );
-    let r = http
-        .post(&url)
-        .json(&batch_json(0, 9, 1))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 409);
-    let body: serde_json::Value = r.json().await.unwrap();
+    let (status, body) = server
+        .post_json("/v1/scenes/lab/batches", &batch_json(0, 9, 1))
+        .await;
+    assert_eq!(status, 409);
     assert_eq!(body["error"]["kind"], "duplicate");
 
     let m = server.metrics().await;

@@ -16,15 +16,12 @@ use crossview_testing::*;
 use futures::StreamExt;
 
 /// Pushes every camera's batch of frame `f` over HTTP.
-async fn push_frame(http: &reqwest::Client, server: &TestServer, f: u64) {
+async fn push_frame(server: &TestServer, f: u64) {
     for cam in 0..3 {
-        let r = http
-            .post(server.url("/v1/scenes/lab/batches"))
-            .json(&batch_json(cam, f, 3))
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(r.status(), 202, "{}", r.text().await.unwrap());
+        let (status, body) = server
+            .post_json("/v1/scenes/lab/batches", &batch_json(cam, f, 3))
+            .await;
+        assert_eq!(status, 202, "{body}");
     }
 }
 
@@ -212,7 +209,7 @@ async fn corrupt_and_foreign_models_are_refused_and_the_old_one_keeps_serving() 
     assert!(o["error"].as_str().unwrap().contains("cameras"), "{o}");
 
     // The old model still associates, and says so.
-    push_frame(&http, &server, 1).await;
+    push_frame(&server, 1).await;
     let r = guard("result", results.next()).await.unwrap().unwrap();
     assert_eq!(r.status, pb::ResultStatus::Associated as i32);
     assert_eq!(r.model_version, old);
@@ -251,7 +248,7 @@ async fn a_declared_scene_publishes_no_model_results_until_its_model_arrives() {
     assert_eq!(scene_version(&http, &server).await, None);
     let mut results = subscribe(&server).await;
 
-    push_frame(&http, &server, 1).await;
+    push_frame(&server, 1).await;
     let r = guard("no-model result", results.next())
         .await
         .unwrap()
@@ -283,7 +280,7 @@ async fn a_declared_scene_publishes_no_model_results_until_its_model_arrives() {
     let _ = export_model(dir.path(), "lab");
     let o = reload(&http, &server).await;
     assert_eq!(o["outcome"], "swapped", "{o}");
-    push_frame(&http, &server, 2).await;
+    push_frame(&server, 2).await;
     let r = guard("associated result", results.next())
         .await
         .unwrap()

@@ -24,15 +24,11 @@ async fn missing_camera_gives_partial_frame_after_timeout() {
     let mut sse = sse.bytes_stream();
 
     // Cameras c0 and c2 report frame 7 over HTTP; c1 never does.
-    let http = reqwest::Client::new();
     for cam in [0usize, 2] {
-        let r = http
-            .post(server.url("/v1/scenes/lab/batches"))
-            .json(&batch_json(cam, 7, 2))
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(r.status(), 202);
+        let (status, _) = server
+            .post_json("/v1/scenes/lab/batches", &batch_json(cam, 7, 2))
+            .await;
+        assert_eq!(status, 202);
     }
 
     let r = guard("partial frame", results.next())

@@ -9,17 +9,11 @@ use futures::StreamExt;
 
 /// Every camera's batch of frame `frame_id` with the same boxes as frame 0 (nobody moves).
 async fn push_still_frame(server: &TestServer, frame_id: u64) {
-    let http = reqwest::Client::new();
     for cam in 0..3 {
         let mut b = batch_json(cam, 0, 4);
         b["frame_id"] = frame_id.into();
-        let r = http
-            .post(server.url("/v1/scenes/lab/batches"))
-            .json(&b)
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(r.status(), 202);
+        let (status, _) = server.post_json("/v1/scenes/lab/batches", &b).await;
+        assert_eq!(status, 202);
     }
 }
 

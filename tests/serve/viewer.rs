@@ -408,16 +408,12 @@ async fn boxes_true_adds_each_cameras_boxes_and_changes_nothing_else() {
         .await
         .unwrap();
     // Frame 1: every camera; frame 2: c1 missing (partial, after the sync timeout).
-    let http = reqwest::Client::new();
     for (frame, cams) in [(1u64, vec![0, 1, 2]), (2, vec![0, 2])] {
         for cam in cams {
-            let r = http
-                .post(server.url("/v1/scenes/lab/batches"))
-                .json(&batch_json(cam, frame, 3))
-                .send()
-                .await
-                .unwrap();
-            assert_eq!(r.status(), 202);
+            let (status, _) = server
+                .post_json("/v1/scenes/lab/batches", &batch_json(cam, frame, 3))
+                .await;
+            assert_eq!(status, 202);
         }
     }
     let with = frame_events(with, 2).await;

@@ -194,6 +194,27 @@ impl TestServer {
             .expect("a JSON answer")
     }
 
+    /// `POST path` with the JSON `body` (over a new connection): the answer's status and its
+    /// body as JSON (`Null` when it is not JSON).
+    pub async fn post_json(
+        &self,
+        path: &str,
+        body: &serde_json::Value,
+    ) -> (reqwest::StatusCode, serde_json::Value) {
+        let r = reqwest::Client::new()
+            .post(self.url(path))
+            .json(body)
+            .send()
+            .await
+            .expect("POST");
+        let status = r.status();
+        let bytes = r.bytes().await.expect("the answer's body");
+        (
+            status,
+            serde_json::from_slice(&bytes).unwrap_or(serde_json::Value::Null),
+        )
+    }
+
     /// Subscribes to `scene`'s results over gRPC (its own connection); panics on a refusal.
     pub async fn subscribe(&self, scene: &str) -> tonic::Streaming<pb::FrameResult> {
         self.grpc()
