@@ -41,6 +41,18 @@ impl Adam {
         })
     }
 
+    /// This optimiser's state (moments, step count, learning rate) over `vars`, the
+    /// variables of a copy of the model it optimises (same names, same order).
+    pub fn clone_for(&self, vars: Vec<(String, Var)>) -> Self {
+        debug_assert!(vars.iter().map(|(n, _)| n.as_str()).eq(self.names()));
+        Adam {
+            vars,
+            m: self.m.clone(),
+            v: self.v.clone(),
+            ..*self
+        }
+    }
+
     /// Names of the optimised variables, in order.
     pub fn names(&self) -> impl Iterator<Item = &str> {
         self.vars.iter().map(|(n, _)| n.as_str())

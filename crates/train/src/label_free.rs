@@ -174,42 +174,14 @@ impl LabelFreeScorer {
                 assignment[i][j] = fwd;
                 assignment[j][i] = back;
             }
-            for i in 0..cams {
-                for j in 0..cams {
-                    for k in 0..cams {
-                        if i == j || j == k || i == k {
-                            continue;
-                        }
-                        for (x, &y) in assignment[i][j].iter().enumerate() {
-                            let Some(y) = y else { continue };
-                            let Some(z) = assignment[j][k].get(y).copied().flatten() else {
-                                continue;
-                            };
-                            chains += 1;
-                            if assignment[i][k].get(x).copied().flatten() == Some(z) {
-                                agree += 1;
-                            }
-                        }
-                    }
-                }
-            }
+            let (a, c) = cycle_counts(&assignment);
+            agree += a;
+            chains += c;
             frames.push((sizes, pairs));
         }
         let cal = Calibration::fit(&sync_d, &shift_d).ok();
         let (expected_acc, threshold, labelled) = match &cal {
-            Some(cal) => {
-                let (e, t) = expected_acc(&frames, cal, &self.thresholds);
-                let opts = PseudoOptions::default();
-                let cfg = identity_config(cal, &opts);
-                let labelled = frames
-                    .iter()
-                    .map(|(sizes, pairs)| {
-                        let row = frame_labels(sizes, pairs, &cfg, &opts);
-                        row.iter().flatten().flatten().count()
-                    })
-                    .sum();
-                (e, t, labelled)
-            }
+            Some(cal) => calibrated_scores(&frames, cal, &self.thresholds),
             None => (0.0, FALLBACK_THRESHOLD, 0),
         };
         let ratio = |a: usize, b: usize| if b == 0 { 0.0 } else { a as f64 / b as f64 };
@@ -224,6 +196,53 @@ impl LabelFreeScorer {
             cal,
         ))
     }
+}
+
+/// Over every ordered camera triple `(i, j, k)` of one frame's assignment table: how many
+/// chains `i→j→k` land where `i→k` does, and how many chains there are.
+fn cycle_counts(assignment: &[Vec<Vec<Option<usize>>>]) -> (usize, usize) {
+    let cams = assignment.len();
+    let (mut agree, mut chains) = (0, 0);
+    for i in 0..cams {
+        for j in 0..cams {
+            for k in 0..cams {
+                if i == j || j == k || i == k {
+                    continue;
+                }
+                for (x, &y) in assignment[i][j].iter().enumerate() {
+                    let Some(y) = y else { continue };
+                    let Some(z) = assignment[j][k].get(y).copied().flatten() else {
+                        continue;
+                    };
+                    chains += 1;
+                    if assignment[i][k].get(x).copied().flatten() == Some(z) {
+                        agree += 1;
+                    }
+                }
+            }
+        }
+    }
+    (agree, chains)
+}
+
+/// The scores that need the held-out frames' calibration: the expected decision accuracy,
+/// its threshold, and how many boxes fall in confident identities (pseudo-labels).
+fn calibrated_scores(
+    frames: &[(Vec<usize>, Vec<ViewPair>)],
+    cal: &Calibration,
+    thresholds: &[f32],
+) -> (f64, f32, usize) {
+    let (e, t) = expected_acc(frames, cal, thresholds);
+    let opts = PseudoOptions::default();
+    let cfg = identity_config(cal, &opts);
+    let labelled = frames
+        .iter()
+        .map(|(sizes, pairs)| {
+            let row = frame_labels(sizes, pairs, &cfg, &opts);
+            row.iter().flatten().flatten().count()
+        })
+        .sum();
+    (e, t, labelled)
 }
 
 /// The best expected decision accuracy over `thresholds` and the threshold reaching it (the

@@ -6,6 +6,7 @@
 //! - [`model`]: the candle encoder + decoder, convertible to [`crossview_model::EncoderWeights`].
 //! - [`losses`]: synchronization, re-projection and edge losses, batched over triplets.
 //! - [`pseudo`]: **[ours]** pseudo-identity labels from confident identities (self-training).
+//! - [`member`]: one run that advances an epoch at a time, scored, checkpointed, cloned.
 //! - [`adam`]: the optimiser, with checkpointable state.
 //! - [`label_free`]: **[ours]** scores on held-out unlabelled frames that choose the epoch
 //!   and the threshold without labels.
@@ -21,6 +22,7 @@ pub mod curve;
 pub mod data;
 pub mod label_free;
 pub mod losses;
+pub mod member;
 pub mod model;
 pub mod pseudo;
 pub mod run;

@@ -260,6 +260,117 @@ fn identity_triplets(
     }
 }
 
+/// The boxes of one step's images in one batch: every box of every kept triplet's images,
+/// their cameras, their re-projection weights and each triplet's (anchor, positive,
+/// negative) start rows.
+struct StepBatch {
+    boxes: Vec<[f32; 4]>,
+    cams: Vec<u32>,
+    pro_w: Vec<f32>,
+    offsets: Vec<[usize; 3]>,
+}
+
+impl StepBatch {
+    fn new(set: &TrainingSet, kept: &[&Triplet]) -> Self {
+        let mut b = StepBatch {
+            boxes: Vec::new(),
+            cams: Vec::new(),
+            pro_w: Vec::new(),
+            offsets: Vec::with_capacity(kept.len()),
+        };
+        for tr in kept {
+            let mut o = [0usize; 3];
+            for (k, r) in [tr.anchor, tr.positive, tr.negative]
+                .into_iter()
+                .enumerate()
+            {
+                o[k] = b.boxes.len();
+                let boxes = &set.images[r.frame][r.camera].boxes;
+                let w = if k < 2 { 1.0 / boxes.len() as f32 } else { 0.0 };
+                b.boxes.extend_from_slice(boxes);
+                b.cams
+                    .extend(std::iter::repeat_n(r.camera as u32, boxes.len()));
+                b.pro_w.extend(std::iter::repeat_n(w, boxes.len()));
+            }
+            b.offsets.push(o);
+        }
+        b
+    }
+}
+
+/// What the Hungarian matches of one step select: the synchronization and edge hinge terms,
+/// the edge boxes (embedded separately) and the pseudo-identity triplets.
+struct Selected {
+    syn: HingeSet,
+    edge: HingeSet,
+    edge_boxes: Vec<[f32; 4]>,
+    edge_cams: Vec<u32>,
+    id_triplets: Vec<IdTriplet>,
+}
+
+/// Runs the Hungarian matches on the detached embeddings `host` and gathers the pairs,
+/// edges and pseudo-identity triplets of every kept triplet.
+fn select_pairs<R: Rng>(
+    set: &TrainingSet,
+    kept: &[&Triplet],
+    batch: &StepBatch,
+    host: &ndarray::Array2<f32>,
+    opts: &LossOptions,
+    pseudo: Option<&PseudoLabels>,
+    rng: &mut R,
+) -> Selected {
+    let img = |r: crate::sampler::ImageRef| &set.images[r.frame][r.camera];
+    let t = kept.len();
+    let mut sel = Selected {
+        syn: HingeSet::new(t),
+        edge: HingeSet::new(t),
+        edge_boxes: Vec::new(),
+        edge_cams: Vec::new(),
+        id_triplets: Vec::new(),
+    };
+    for (ti, (tr, o)) in kept.iter().zip(&batch.offsets).enumerate() {
+        let (ia, ip, ineg) = (img(tr.anchor), img(tr.positive), img(tr.negative));
+        if let Some(pl) = pseudo {
+            let (a, p) = (tr.anchor, tr.positive);
+            identity_triplets(
+                host,
+                (o[0], ia.boxes.len()),
+                (o[1], ip.boxes.len()),
+                |k| pl.get(a.frame, a.camera, k),
+                |k| pl.get(p.frame, p.camera, k),
+                &mut sel.id_triplets,
+            );
+        }
+        let view = |start: usize, n: usize| host.slice(s![start..start + n, ..]);
+        let va = view(o[0], ia.boxes.len());
+        let mut sides: Vec<Vec<(u32, u32)>> = Vec::with_capacity(2);
+        let mut edge_sides: Vec<Vec<(u32, u32)>> = Vec::with_capacity(2);
+        for (other, start, r) in [(ip, o[1], tr.positive), (ineg, o[2], tr.negative)] {
+            let pairs = match_images(va, view(start, other.boxes.len()), ia, other, opts.alpha);
+            sides.push(
+                pairs
+                    .iter()
+                    .map(|&(a, b)| ((o[0] + a) as u32, (start + b) as u32))
+                    .collect(),
+            );
+            let edges = edge_indices(pairs.len(), opts.max_edges, rng);
+            let mut list = Vec::with_capacity(edges.len());
+            for (l, r_box) in edge_boxes(&ia.boxes, &other.boxes, &pairs, &edges) {
+                let li = sel.edge_boxes.len() as u32;
+                sel.edge_boxes.push(l);
+                sel.edge_cams.push(tr.anchor.camera as u32);
+                sel.edge_boxes.push(r_box);
+                sel.edge_cams.push(r.camera as u32);
+                list.push((li, li + 1));
+            }
+            edge_sides.push(list);
+        }
+        sel.syn.add(ti, &sides[0], &sides[1]);
+        sel.edge.add(ti, &edge_sides[0], &edge_sides[1]);
+    }
+    sel
+}
+
 /// Computes the total loss of one step over `triplets` (skipping those with an empty image).
 /// With `pseudo` labels (the self-training stage) the pseudo-identity triplet loss is added.
 /// Returns `None` when every triplet was skipped.
@@ -285,97 +396,35 @@ pub(crate) fn step_loss<R: Rng>(
         return Ok(None);
     }
     // 1. All real boxes of all images in one batch.
-    let mut boxes: Vec<[f32; 4]> = Vec::new();
-    let mut cams: Vec<u32> = Vec::new();
-    let mut pro_w: Vec<f32> = Vec::new();
-    let mut offsets = Vec::with_capacity(t); // (anchor, positive, negative) start rows
-    for tr in &kept {
-        let mut o = [0usize; 3];
-        for (k, r) in [tr.anchor, tr.positive, tr.negative]
-            .into_iter()
-            .enumerate()
-        {
-            o[k] = boxes.len();
-            let b = &img(r).boxes;
-            let w = if k < 2 { 1.0 / b.len() as f32 } else { 0.0 };
-            boxes.extend_from_slice(b);
-            cams.extend(std::iter::repeat_n(r.camera as u32, b.len()));
-            pro_w.extend(std::iter::repeat_n(w, b.len()));
-        }
-        offsets.push(o);
-    }
-    let emb = model.forward(&boxes, &cams)?.embedding;
-    let g = model.config.width;
+    let batch = StepBatch::new(set, &kept);
+    let emb = model.forward(&batch.boxes, &batch.cams)?.embedding;
     let host = emb
         .flatten_all()
         .and_then(|x| x.to_vec1::<f32>())
         .map_err(ce)?;
-    let host = ndarray::Array2::from_shape_vec((boxes.len(), g), host)
+    let host = ndarray::Array2::from_shape_vec((batch.boxes.len(), model.config.width), host)
         .map_err(|e| Error::Training(format!("embedding shape: {e}")))?;
     // 2. Hungarian on detached distances; gather pairs and edges.
-    let mut syn = HingeSet::new(t);
-    let mut edge = HingeSet::new(t);
-    let mut edge_boxes_all: Vec<[f32; 4]> = Vec::new();
-    let mut edge_cams: Vec<u32> = Vec::new();
-    let mut id_triplets = Vec::new();
-    for (ti, (tr, o)) in kept.iter().zip(&offsets).enumerate() {
-        let (ia, ip, ineg) = (img(tr.anchor), img(tr.positive), img(tr.negative));
-        if let Some(pl) = pseudo {
-            let (a, p) = (tr.anchor, tr.positive);
-            identity_triplets(
-                &host,
-                (o[0], ia.boxes.len()),
-                (o[1], ip.boxes.len()),
-                |k| pl.get(a.frame, a.camera, k),
-                |k| pl.get(p.frame, p.camera, k),
-                &mut id_triplets,
-            );
-        }
-        let view = |start: usize, n: usize| host.slice(s![start..start + n, ..]);
-        let va = view(o[0], ia.boxes.len());
-        let mut sides: Vec<Vec<(u32, u32)>> = Vec::with_capacity(2);
-        let mut edge_sides: Vec<Vec<(u32, u32)>> = Vec::with_capacity(2);
-        for (other, start, r) in [(ip, o[1], tr.positive), (ineg, o[2], tr.negative)] {
-            let pairs = match_images(va, view(start, other.boxes.len()), ia, other, opts.alpha);
-            sides.push(
-                pairs
-                    .iter()
-                    .map(|&(a, b)| ((o[0] + a) as u32, (start + b) as u32))
-                    .collect(),
-            );
-            let edges = edge_indices(pairs.len(), opts.max_edges, rng);
-            let mut list = Vec::with_capacity(edges.len());
-            for (l, r_box) in edge_boxes(&ia.boxes, &other.boxes, &pairs, &edges) {
-                let li = edge_boxes_all.len() as u32;
-                edge_boxes_all.push(l);
-                edge_cams.push(tr.anchor.camera as u32);
-                edge_boxes_all.push(r_box);
-                edge_cams.push(r.camera as u32);
-                list.push((li, li + 1));
-            }
-            edge_sides.push(list);
-        }
-        syn.add(ti, &sides[0], &sides[1]);
-        edge.add(ti, &edge_sides[0], &edge_sides[1]);
-    }
+    let sel = select_pairs(set, &kept, &batch, &host, opts, pseudo, rng);
     // 3. Losses.
-    let l_syn = syn.loss(&emb, t)?;
-    let pred = model.decode(&emb, &cams)?;
-    let l_pro = (reprojection_loss(&pred, &boxes, &pro_w)? / t as f64).map_err(ce)?;
-    let l_edge = if edge.is_empty() {
-        Tensor::zeros((), candle_core::DType::F32, &model.device).map_err(ce)?
+    let zero = || Tensor::zeros((), candle_core::DType::F32, &model.device).map_err(ce);
+    let l_syn = sel.syn.loss(&emb, t)?;
+    let pred = model.decode(&emb, &batch.cams)?;
+    let l_pro = (reprojection_loss(&pred, &batch.boxes, &batch.pro_w)? / t as f64).map_err(ce)?;
+    let l_edge = if sel.edge.is_empty() {
+        zero()?
     } else {
-        let e = model.forward(&edge_boxes_all, &edge_cams)?.embedding;
-        edge.loss(&e, t)?
+        let e = model.forward(&sel.edge_boxes, &sel.edge_cams)?.embedding;
+        sel.edge.loss(&e, t)?
     };
-    let l_id = if id_triplets.is_empty() {
-        Tensor::zeros((), candle_core::DType::F32, &model.device).map_err(ce)?
+    let l_id = if sel.id_triplets.is_empty() {
+        zero()?
     } else {
-        let mut id = HingeSet::new(id_triplets.len());
-        for (k, (pos, neg)) in id_triplets.iter().enumerate() {
+        let mut id = HingeSet::new(sel.id_triplets.len());
+        for (k, (pos, neg)) in sel.id_triplets.iter().enumerate() {
             id.add(k, &[*pos], &[*neg]);
         }
-        id.loss(&emb, id_triplets.len())?
+        id.loss(&emb, sel.id_triplets.len())?
     };
     let total = (&l_syn + &l_pro)
         .and_then(|x| x + &l_edge)

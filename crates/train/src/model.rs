@@ -213,6 +213,19 @@ impl TrainModel {
         })
     }
 
+    /// An independent copy: every variable's values copied into new variables (a clone of
+    /// a [`Var`] shares its storage), so the two models train apart.
+    pub fn deep_copy(&self) -> Result<Self> {
+        let copy = Self::new(self.config, self.num_cameras, 0)?;
+        for ((_, to), (_, from)) in copy.named_vars().into_iter().zip(self.named_vars()) {
+            to.set(from.as_tensor()).map_err(ce)?;
+        }
+        Ok(TrainModel {
+            fourier: self.fourier.clone(),
+            ..copy
+        })
+    }
+
     /// Every trainable variable with a stable name (checkpoints, optimiser state).
     pub(crate) fn named_vars(&self) -> Vec<(String, Var)> {
         let mut v = vec![(

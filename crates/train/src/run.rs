@@ -5,8 +5,8 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use crossview_core::{CameraSpec, Error, Result};
-use crossview_data::recording::{read_recording, read_recordings};
-use crossview_model::ModelMetadata;
+use crossview_data::recording::{Recording, read_recording, read_recordings};
+use crossview_model::{EncoderWeights, ModelMetadata};
 use crossview_model::export::{read_weights, write_onnx};
 
 use crate::TrainingSet;
@@ -79,82 +79,11 @@ fn data_label(data: &[PathBuf]) -> String {
 
 /// Runs one training run (see the module docs) and writes its files.
 pub fn run(opts: RunOptions) -> Result<RunReport> {
-    let (rec, read) = read_recordings(&opts.data, opts.strict)?;
-    let mut read_summary = format!(
-        "{} boxes clipped at the image edge, {} broken boxes and {} broken lines skipped",
-        read.clipped_boxes, read.skipped_boxes, read.skipped_lines
-    );
-    if read.torn_lines > 0 {
-        read_summary += &format!(
-            ", {} torn last line(s) dropped (cut short by a crash)",
-            read.torn_lines
-        );
-    }
-    if read.skipped_boxes + read.skipped_lines > 0 {
-        tracing::warn!(
-            clipped = read.clipped_boxes,
-            skipped_boxes = read.skipped_boxes,
-            skipped_lines = read.skipped_lines,
-            first = read.first_problem.as_deref().unwrap_or(""),
-            "training data had broken boxes or lines (skipped; --strict aborts instead)"
-        );
-    }
-    let mut set = TrainingSet::from_recording(&rec.without_ids(), MIN_FRAMES).map_err(|e| {
-        Error::Training(format!(
-            "training data {}: {}",
-            data_label(&opts.data),
-            e.report()
-        ))
-    })?;
-    let filter = &opts.filter;
-    let removed = filter.apply(&mut set);
-    if !filter.is_off() {
-        tracing::info!(
-            before = removed.before,
-            small = removed.small,
-            stationary = removed.stationary,
-            kept = set.num_boxes(),
-            "filtered training boxes"
-        );
-    }
-    if set.num_boxes() == 0 {
-        return Err(Error::Training(format!(
-            "no training boxes left after --min-box-height {} / --drop-static-iou {}",
-            filter.min_height, filter.static_iou
-        )));
-    }
+    let (rec, mut set, read_summary) = read_training_set(&opts)?;
     let scorer = hold_out(&mut set, opts.holdout, opts.config.seed)?;
     let mut cfg = opts.config.clone();
-    let init = match &opts.init {
-        Some(p) => {
-            let (w, m) = read_weights(p)?;
-            if m.cameras != rec.scene.cameras {
-                return Err(Error::Training(format!(
-                    "{} was trained for other cameras than the training data",
-                    p.display()
-                )));
-            }
-            cfg.fourier_features = w.config.fourier_features;
-            cfg.camera_dim = w.config.camera_dim;
-            cfg.width = w.config.width;
-            cfg.blocks = w.config.blocks;
-            Some(w)
-        }
-        None => None,
-    };
-    let mut validator = match &opts.val {
-        Some(p) => {
-            let v = read_recording(p)?;
-            if v.scene.cameras != rec.scene.cameras {
-                return Err(Error::Training(format!(
-                    "validation recording {} has other cameras than the training data",
-                    p.display()
-                )));
-            }
-            Some(EvalValidator::new(v, candidate_thresholds(), opts.alpha)?)
-        }
-        None => None,
-    };
+    let init = initial_weights(&opts, &rec.scene.cameras, &mut cfg)?;
+    let mut validator = validator(&opts, &rec.scene.cameras)?;
     tracing::info!(
         frames = set.num_frames(),
         cameras = set.num_cameras(),
@@ -208,6 +137,112 @@ pub fn run(opts: RunOptions) -> Result<RunReport> {
         Err(e) => tracing::warn!(error = %e, "no calibration stored: identities will use S"),
     }
     write_onnx(&opts.out, &outcome.weights, &meta)?;
+    let curve = write_curve_and_history(&opts, &outcome, &data_name)?;
+    Ok(RunReport {
+        summary: summary(&outcome, meta.threshold),
+        data: read_summary,
+        curve,
+    })
+}
+
+/// Reads the training recording and turns it into the cleaned training set; what reading
+/// clipped and skipped, in words.
+fn read_training_set(opts: &RunOptions) -> Result<(Recording, TrainingSet, String)> {
+    let (rec, read) = read_recordings(&opts.data, opts.strict)?;
+    let mut read_summary = format!(
+        "{} boxes clipped at the image edge, {} broken boxes and {} broken lines skipped",
+        read.clipped_boxes, read.skipped_boxes, read.skipped_lines
+    );
+    if read.torn_lines > 0 {
+        read_summary += &format!(
+            ", {} torn last line(s) dropped (cut short by a crash)",
+            read.torn_lines
+        );
+    }
+    if read.skipped_boxes + read.skipped_lines > 0 {
+        tracing::warn!(
+            clipped = read.clipped_boxes,
+            skipped_boxes = read.skipped_boxes,
+            skipped_lines = read.skipped_lines,
+            first = read.first_problem.as_deref().unwrap_or(""),
+            "training data had broken boxes or lines (skipped; --strict aborts instead)"
+        );
+    }
+    let mut set = TrainingSet::from_recording(&rec.without_ids(), MIN_FRAMES).map_err(|e| {
+        Error::Training(format!(
+            "training data {}: {}",
+            data_label(&opts.data),
+            e.report()
+        ))
+    })?;
+    let filter = &opts.filter;
+    let removed = filter.apply(&mut set);
+    if !filter.is_off() {
+        tracing::info!(
+            before = removed.before,
+            small = removed.small,
+            stationary = removed.stationary,
+            kept = set.num_boxes(),
+            "filtered training boxes"
+        );
+    }
+    if set.num_boxes() == 0 {
+        return Err(Error::Training(format!(
+            "no training boxes left after --min-box-height {} / --drop-static-iou {}",
+            filter.min_height, filter.static_iou
+        )));
+    }
+    Ok((rec, set, read_summary))
+}
+
+/// The `--init` model's encoder, when given; its shape overrides `cfg`'s.
+fn initial_weights(
+    opts: &RunOptions,
+    cameras: &[CameraSpec],
+    cfg: &mut TrainConfig,
+) -> Result<Option<EncoderWeights>> {
+    let Some(p) = &opts.init else {
+        return Ok(None);
+    };
+    let (w, m) = read_weights(p)?;
+    if m.cameras != cameras {
+        return Err(Error::Training(format!(
+            "{} was trained for other cameras than the training data",
+            p.display()
+        )));
+    }
+    cfg.fourier_features = w.config.fourier_features;
+    cfg.camera_dim = w.config.camera_dim;
+    cfg.width = w.config.width;
+    cfg.blocks = w.config.blocks;
+    Ok(Some(w))
+}
+
+/// The labelled validator over `--val`, when given.
+fn validator(opts: &RunOptions, cameras: &[CameraSpec]) -> Result<Option<EvalValidator>> {
+    let Some(p) = &opts.val else {
+        return Ok(None);
+    };
+    let v = read_recording(p)?;
+    if v.scene.cameras != cameras {
+        return Err(Error::Training(format!(
+            "validation recording {} has other cameras than the training data",
+            p.display()
+        )));
+    }
+    Ok(Some(EvalValidator::new(
+        v,
+        candidate_thresholds(),
+        opts.alpha,
+    )?))
+}
+
+/// Writes the SVG training curve and the JSON history beside the model; the curve's path.
+fn write_curve_and_history(
+    opts: &RunOptions,
+    outcome: &TrainOutcome,
+    data_name: &str,
+) -> Result<PathBuf> {
     let curve = opts
         .curve
         .clone()
@@ -215,17 +250,16 @@ pub fn run(opts: RunOptions) -> Result<RunReport> {
     write_svg(
         &curve,
         &outcome.history,
-        &format!("crossview train on {data_name} (width {})", cfg.width),
+        &format!(
+            "crossview train on {data_name} (width {})",
+            opts.config.width
+        ),
     )?;
     let history = opts.out.with_extension("history.json");
     let json = serde_json::to_vec_pretty(&outcome.history)
         .map_err(|e| Error::Training(format!("cannot encode the history: {e}")))?;
     std::fs::write(&history, json).map_err(|e| Error::io(&history, e))?;
-    Ok(RunReport {
-        summary: summary(&outcome, meta.threshold),
-        data: read_summary,
-        curve,
-    })
+    Ok(curve)
 }
 
 /// The model file's metadata (SPEC §8): cameras, thresholds, and how the run trained and chose

@@ -153,3 +153,22 @@ pub struct RunState {
     /// Seconds of training so far.
     pub train_seconds: f64,
 }
+
+impl RunState {
+    /// An independent copy of the run's state (a population clones its best member).
+    pub fn try_clone(&self) -> Result<Self> {
+        let model = self.model.deep_copy()?;
+        let adam = self.adam.clone_for(model.named_vars());
+        Ok(RunState {
+            adam,
+            model,
+            ema: self.ema.as_ref().map(TrainModel::deep_copy).transpose()?,
+            epoch: self.epoch,
+            history: self.history.clone(),
+            best: self.best.clone(),
+            pseudo: self.pseudo.clone(),
+            stage_steps: self.stage_steps,
+            train_seconds: self.train_seconds,
+        })
+    }
+}
