@@ -2,11 +2,14 @@
 //! `crossview_train::run` (self-supervised training, ONNX export with metadata, training
 //! curve, optional validation on a labelled recording).
 use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::Context;
 use clap::{Args, ValueEnum};
 
 use crossview_train::clean::BoxFilter;
+use crossview_train::population::PopulationOptions;
 use crossview_train::pseudo::PseudoOptions;
 use crossview_train::run::{RunOptions, run as run_training};
 use crossview_train::trainer::{CheckpointOptions, LrSchedule, Select, TrainConfig};
@@ -160,9 +163,18 @@ pub struct TrainArgs {
     /// with a count (boxes overlapping the image edge are clipped either way).
     #[arg(long)]
     pub strict: bool,
-    /// Compute threads (default: all cores).
+    /// Cores the run uses (default: all): a population trains this many members at once.
+    /// Each member computes on one thread: at these matrix sizes candle's threaded kernels
+    /// cost more than they gain (BENCHMARKS.md, "Training").
     #[arg(long, env = "CROSSVIEW_THREADS")]
     pub threads: Option<usize>,
+    /// [ours] Train this many members (the run's seed and seeds derived from it) side by
+    /// side, one per thread, and drop the worse half by the label-free key at 25 % and 50 %
+    /// of the first stage, down to one member per thread; the finalist with the best key is
+    /// exported. Default: one member per core and at least 4 when frames are held out
+    /// (`--holdout`) or `--val` is given, else 1. 1 = a single run.
+    #[arg(long, value_parser = clap::value_parser!(u16).range(1..=64))]
+    pub population: Option<u16>,
     /// Stop training after this many seconds (exploration; drops the learning rate at
     /// `--lr-drop-at` of the budget; not reproducible).
     #[arg(long)]
@@ -263,16 +275,50 @@ impl TrainArgs {
     }
 }
 
+/// A flag that the first Ctrl-C sets (the run ends after its epoch in progress, scored and
+/// checkpointed); a second Ctrl-C exits at once.
+fn interrupt_on_ctrl_c() -> anyhow::Result<Arc<AtomicBool>> {
+    let flag = Arc::new(AtomicBool::new(false));
+    let f = flag.clone();
+    ctrlc::set_handler(move || {
+        if f.swap(true, Ordering::Relaxed) {
+            std::process::exit(130);
+        }
+        eprintln!("\nstopping after the epoch in progress (Ctrl-C again to quit at once)");
+    })
+    .context("cannot install the Ctrl-C handler")?;
+    Ok(flag)
+}
+
+/// `--population` and `--threads` as the population's options.
+fn population_options(args: &TrainArgs) -> PopulationOptions {
+    let machine = PopulationOptions::for_machine();
+    let threads = args.threads.unwrap_or(machine.threads).max(1);
+    let rankable = args.holdout > 0.0 || args.val.is_some();
+    let size = match args.population {
+        Some(k) => usize::from(k),
+        None if rankable => threads.max(4),
+        None => 1,
+    };
+    if size <= 1 {
+        return PopulationOptions::single();
+    }
+    PopulationOptions {
+        size,
+        threads,
+        keep_at_least: threads,
+        ..machine
+    }
+}
+
 /// Runs `crossview train`.
 pub fn run(args: TrainArgs) -> anyhow::Result<()> {
-    if let Some(t) = args.threads {
-        // candle reads RAYON_NUM_THREADS when it first sizes its thread pool.
-        // SAFETY: set before any worker thread exists.
-        #[allow(unsafe_code)]
-        unsafe {
-            std::env::set_var("RAYON_NUM_THREADS", t.max(1).to_string())
-        };
-    }
+    // One compute thread per member: candle reads RAYON_NUM_THREADS when it first sizes its
+    // thread pool. SAFETY: set before any thread of this process exists.
+    #[allow(unsafe_code)]
+    unsafe {
+        std::env::set_var("RAYON_NUM_THREADS", "1")
+    };
     if !(0.0..=1.0).contains(&args.threshold)
         || !(0.0..=1.0).contains(&args.alpha)
         || !(0.0..=1.0).contains(&args.match_threshold)
@@ -286,9 +332,19 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     if !(0.0..0.5).contains(&args.holdout) {
         anyhow::bail!("--holdout must be within [0, 0.5)");
     }
+    if args.population.is_some_and(|k| k > 1) && args.holdout == 0.0 && args.val.is_none() {
+        anyhow::bail!("--population needs held-out frames to rank its members (--holdout > 0)");
+    }
     if args.select == SelectArg::Labelled && args.val.is_none() {
         anyhow::bail!("--select labelled needs --val");
     }
+    let interrupt = interrupt_on_ctrl_c()?;
+    // Without --checkpoint-dir, an interrupted run still leaves a checkpoint to resume from
+    // (beside the output); a run that completes removes it.
+    let default_ckpt = args
+        .checkpoint_dir
+        .is_none()
+        .then(|| args.out.with_extension("checkpoint"));
     let report = run_training(RunOptions {
         data: args.data.clone(),
         strict: args.strict,
@@ -308,11 +364,13 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         alpha: args.alpha,
         match_threshold: args.match_threshold,
         checkpoint: CheckpointOptions {
-            dir: args.checkpoint_dir.clone(),
+            dir: args.checkpoint_dir.clone().or_else(|| default_ckpt.clone()),
             every: args.checkpoint_every,
             resume: args.resume,
+            interrupt: Some(interrupt.clone()),
         },
         progress: !args.quiet,
+        population: population_options(&args),
     })
     .with_context(|| {
         let names: Vec<_> = args.data.iter().map(|p| p.display().to_string()).collect();
@@ -325,6 +383,23 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         report.curve.display(),
         report.data
     );
+    let ckpt = args.checkpoint_dir.as_ref().or(default_ckpt.as_ref());
+    if interrupt.load(Ordering::Relaxed) {
+        if let Some(dir) = ckpt {
+            eprintln!(
+                "interrupted: {} holds the best model so far; continue with the same command \
+                 plus --checkpoint-dir {} --resume",
+                args.out.display(),
+                dir.display()
+            );
+        }
+        return Ok(());
+    }
+    if let Some(dir) = &default_ckpt
+        && let Err(e) = std::fs::remove_dir_all(dir)
+    {
+        tracing::warn!(dir = %dir.display(), error = %e, "could not remove the run's checkpoint");
+    }
     if !args.no_sync_check {
         warn_if_out_of_sync(&args)?;
     }

@@ -16,3 +16,5 @@ mod sighup_early;
 mod subscriber_memory;
 mod sync_check;
 mod train;
+mod train_interrupt;
+mod train_population;

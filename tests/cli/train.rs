@@ -8,7 +8,8 @@ use crossview_data::Recording;
 use crossview_data::recording::write_recording;
 use crossview_model::read_weights;
 
-fn recording(cameras: usize, frames: usize, ids: bool) -> Recording {
+/// A small recording of 3 people walking past `cameras` cameras (ids when `ids`).
+pub(crate) fn recording(cameras: usize, frames: usize, ids: bool) -> Recording {
     let cams: Vec<CameraSpec> = (0..cameras)
         .map(|c| CameraSpec {
             offset: 0,

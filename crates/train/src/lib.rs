@@ -7,6 +7,8 @@
 //! - [`losses`]: synchronization, re-projection and edge losses, batched over triplets.
 //! - [`pseudo`]: **[ours]** pseudo-identity labels from confident identities (self-training).
 //! - [`member`]: one run that advances an epoch at a time, scored, checkpointed, cloned.
+//! - [`population`]: **[ours]** members on every core, the worse half dropped by the
+//!   label-free key.
 //! - [`adam`]: the optimiser, with checkpointable state.
 //! - [`label_free`]: **[ours]** scores on held-out unlabelled frames that choose the epoch
 //!   and the threshold without labels.
@@ -24,6 +26,7 @@ pub mod label_free;
 pub mod losses;
 pub mod member;
 pub mod model;
+pub mod population;
 pub mod pseudo;
 pub mod run;
 pub mod sampler;

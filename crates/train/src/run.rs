@@ -14,6 +14,7 @@ use crate::calibrate::calibrate;
 use crate::clean::BoxFilter;
 use crate::curve::write_svg;
 use crate::label_free::LabelFreeScorer;
+use crate::population::{PopulationOptions, train_population};
 use crate::sampler::MIN_FRAMES;
 use crate::trainer::{
     CheckpointOptions, Scoring, Select, TrainConfig, TrainOutcome, Validator, train_from,
@@ -56,6 +57,9 @@ pub struct RunOptions {
     pub checkpoint: CheckpointOptions,
     /// Show a progress bar.
     pub progress: bool,
+    /// **[ours]** How many members train side by side ([`PopulationOptions::single`]: one
+    /// run).
+    pub population: PopulationOptions,
 }
 
 /// What a run wrote, in words for the user.
@@ -96,14 +100,28 @@ pub fn run(opts: RunOptions) -> Result<RunReport> {
         validator: validator.as_mut().map(|v| v as &mut dyn Validator),
         select: opts.select,
     };
-    let outcome = train_from(
-        &set,
-        &cfg,
-        init.as_ref(),
-        scoring,
-        &opts.checkpoint,
-        opts.progress,
-    )?;
+    let (outcome, population) = if opts.population.size > 1 {
+        let p = train_population(
+            &set,
+            &cfg,
+            init.as_ref(),
+            scoring,
+            &opts.checkpoint,
+            opts.progress,
+            &opts.population,
+        )?;
+        (p.outcome.clone(), Some(p))
+    } else {
+        let out = train_from(
+            &set,
+            &cfg,
+            init.as_ref(),
+            scoring,
+            &opts.checkpoint,
+            opts.progress,
+        )?;
+        (out, None)
+    };
     let data_name = opts.data_name.clone().unwrap_or_else(|| {
         opts.data
             .iter()
@@ -127,6 +145,18 @@ pub fn run(opts: RunOptions) -> Result<RunReport> {
         &data_name,
         &rec.scene.name,
     );
+    if let Some(p) = &population {
+        meta.extra.insert(
+            "crossview.population".into(),
+            serde_json::json!({
+                "winner": p.winner,
+                "why": "best label-free key of its kept weights among the finalists",
+                "options": opts.population,
+                "members": p.members,
+            })
+            .to_string(),
+        );
+    }
     // Label-free confidence: synchronized vs time-shifted pairs of the training frames.
     let mut exported = outcome.weights.clone();
     match calibrate(&mut exported, &set, cfg.seed) {
@@ -138,8 +168,12 @@ pub fn run(opts: RunOptions) -> Result<RunReport> {
     }
     write_onnx(&opts.out, &outcome.weights, &meta)?;
     let curve = write_curve_and_history(&opts, &outcome, &data_name)?;
+    let mut summary = summary(&outcome, meta.threshold);
+    if let Some(p) = &population {
+        summary.push_str(&format!("; population: {}", p.summary()));
+    }
     Ok(RunReport {
-        summary: summary(&outcome, meta.threshold),
+        summary,
         data: read_summary,
         curve,
     })

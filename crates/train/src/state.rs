@@ -2,6 +2,8 @@
 //! mutable run state a checkpoint saves, and the outcome. Shared by the training loop, the
 //! checkpoints and the validators, none of which needs the others for it.
 use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use serde::{Deserialize, Serialize};
 
@@ -100,7 +102,7 @@ pub struct Best {
     pub label_free: Option<LabelFreeScores>,
 }
 
-/// Where and how often to checkpoint.
+/// Where and how often to checkpoint, and the flag that interrupts a run.
 #[derive(Debug, Clone, Default)]
 pub struct CheckpointOptions {
     /// Checkpoint directory (none = no checkpoints).
@@ -109,6 +111,18 @@ pub struct CheckpointOptions {
     pub every: usize,
     /// Continue from the checkpoint in `dir` when one exists.
     pub resume: bool,
+    /// When this becomes true (Ctrl-C), the run ends after the epoch in progress: it is
+    /// scored, checkpointed to `dir`, and the best weights so far are its outcome.
+    pub interrupt: Option<Arc<AtomicBool>>,
+}
+
+impl CheckpointOptions {
+    /// True once the run was asked to stop.
+    pub fn interrupted(&self) -> bool {
+        self.interrupt
+            .as_ref()
+            .is_some_and(|f| f.load(Ordering::Relaxed))
+    }
 }
 
 /// The result of a run.

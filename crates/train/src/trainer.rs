@@ -52,7 +52,7 @@ pub fn train_from(
         if let Some(note) = note {
             bar.println(note);
         }
-        let last = member.finished();
+        let last = member.finished() || ckpt.interrupted();
         let due = last || (cfg.val_every > 0 && rec.epoch % cfg.val_every == 0);
         if due {
             score_epoch(&mut member, &mut rec, &mut scoring)?;
@@ -85,8 +85,17 @@ pub fn train_from(
         {
             member.save(dir)?;
         }
+        if last {
+            break;
+        }
     }
     bar.finish_and_clear();
+    if ckpt.interrupted() && member.epoch() < member.total_epochs() {
+        tracing::warn!(
+            epoch = member.epoch(),
+            "interrupted: the best weights so far are the outcome; resume from the checkpoint"
+        );
+    }
     member.finish(scoring.select)
 }
 
@@ -163,7 +172,7 @@ pub(crate) fn score_label_free(
 
 /// True when the scores in `rec` beat `best` under `select` (label-free: its key; labelled:
 /// ACC then IPAA-100). When the selecting score is missing, the other one decides.
-fn improves(rec: &EpochRecord, best: Option<&Best>, select: Select) -> bool {
+pub(crate) fn improves(rec: &EpochRecord, best: Option<&Best>, select: Select) -> bool {
     let Some(best) = best else {
         return rec.val.is_some() || rec.label_free.is_some();
     };

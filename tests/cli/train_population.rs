@@ -1,0 +1,81 @@
+//! `crossview train --population K`: K members trained side by side, the worse ones dropped
+//! by the label-free key; the model file records every member and which one won; without
+//! held-out frames to rank them, the flag is refused.
+use std::process::Command;
+
+use crossview_data::recording::write_recording;
+use crossview_model::read_weights;
+
+use crate::train::recording;
+
+const SMALL: [&str; 14] = [
+    "--width",
+    "16",
+    "--fourier-features",
+    "4",
+    "--camera-dim",
+    "4",
+    "--self-train-epochs",
+    "0",
+    "--epochs",
+    "8",
+    "--val-every",
+    "2",
+    "--seed",
+    "2",
+];
+
+#[test]
+fn a_population_records_its_members_and_the_winner() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("train.jsonl");
+    write_recording(&data, &recording(3, 40, false)).unwrap();
+    let out = dir.path().join("m.onnx");
+    // One thread: halving goes down to one member (it keeps one per thread).
+    let st = Command::new(env!("CARGO_BIN_EXE_crossview"))
+        .args(["train", "--quiet", "--population", "3", "--threads", "1"])
+        .args(SMALL)
+        .arg("--data")
+        .arg(&data)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+    let stdout = String::from_utf8_lossy(&st.stdout);
+    assert!(stdout.contains("population: member"), "{stdout}");
+    let (_, meta) = read_weights(&out).unwrap();
+    let pop: serde_json::Value =
+        serde_json::from_str(&meta.extra["crossview.population"]).unwrap();
+    let members = pop["members"].as_array().unwrap();
+    assert_eq!(members.len(), 3);
+    assert_eq!(members[0]["seed"], 2);
+    // 3 -> 2 at epoch 2 (25 %), 2 -> 1 at epoch 4 (50 %).
+    let dropped: Vec<u64> = members
+        .iter()
+        .filter_map(|m| m["dropped_at"].as_u64())
+        .collect();
+    assert_eq!(dropped.iter().filter(|&&e| e == 2).count(), 1, "{pop}");
+    assert_eq!(dropped.iter().filter(|&&e| e == 4).count(), 1, "{pop}");
+    let winner = pop["winner"].as_u64().unwrap() as usize;
+    assert!(members[winner]["dropped_at"].is_null());
+    assert!(!dir.path().join("m.checkpoint").exists());
+}
+
+#[test]
+fn a_population_without_held_out_frames_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("train.jsonl");
+    write_recording(&data, &recording(3, 20, false)).unwrap();
+    let st = Command::new(env!("CARGO_BIN_EXE_crossview"))
+        .args(["train", "--quiet", "--population", "2", "--holdout", "0"])
+        .arg("--data")
+        .arg(&data)
+        .arg("--out")
+        .arg(dir.path().join("m.onnx"))
+        .output()
+        .unwrap();
+    assert!(!st.status.success());
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(err.contains("--holdout"), "{err}");
+}
