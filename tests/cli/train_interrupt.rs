@@ -103,7 +103,11 @@ fn ctrl_c_keeps_the_best_model_so_far_and_a_checkpoint_that_resumes() {
         .arg("--resume")
         .output()
         .unwrap();
-    assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
     let (_, meta) = read_weights(&out).unwrap();
     assert_eq!(meta.extra["crossview.epochs_run"], total);
     let hist: serde_json::Value =
@@ -127,7 +131,11 @@ fn a_completed_run_removes_its_default_checkpoint() {
         .arg(&out)
         .output()
         .unwrap();
-    assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
     assert!(out.is_file());
     assert!(!dir.path().join("m.checkpoint").exists());
 }

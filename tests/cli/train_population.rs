@@ -41,12 +41,15 @@ fn a_population_records_its_members_and_the_winner() {
         .arg(&out)
         .output()
         .unwrap();
-    assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
     let stdout = String::from_utf8_lossy(&st.stdout);
     assert!(stdout.contains("population: member"), "{stdout}");
     let (_, meta) = read_weights(&out).unwrap();
-    let pop: serde_json::Value =
-        serde_json::from_str(&meta.extra["crossview.population"]).unwrap();
+    let pop: serde_json::Value = serde_json::from_str(&meta.extra["crossview.population"]).unwrap();
     let members = pop["members"].as_array().unwrap();
     assert_eq!(members.len(), 3);
     assert_eq!(members[0]["seed"], 2);

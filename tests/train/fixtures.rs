@@ -79,4 +79,3 @@ pub fn small_config(epochs: usize) -> TrainConfig {
         ..TrainConfig::default()
     }
 }
-

@@ -339,12 +339,15 @@ impl<'s> Member<'s> {
     pub fn finish(self, select: Select) -> Result<TrainOutcome> {
         let st = self.st;
         let steps = st.stage_steps + st.adam.t;
-        let selected_by = st.best.as_ref().map(|b| {
-            match (select, b.label_free.is_some(), b.val.is_some()) {
-                (Select::LabelFree, true, _) | (Select::Labelled, _, false) => Select::LabelFree,
-                _ => Select::Labelled,
-            }
-        });
+        let selected_by =
+            st.best.as_ref().map(
+                |b| match (select, b.label_free.is_some(), b.val.is_some()) {
+                    (Select::LabelFree, true, _) | (Select::Labelled, _, false) => {
+                        Select::LabelFree
+                    }
+                    _ => Select::Labelled,
+                },
+            );
         let best = match st.best {
             Some(b) => b,
             None => Best {

@@ -19,9 +19,7 @@ use crate::config::TrainConfig;
 use crate::data::TrainingSet;
 use crate::label_free::{LabelFreeScorer, LabelFreeScores};
 use crate::member::{Member, mix};
-use crate::state::{
-    CheckpointOptions, EpochRecord, Scoring, Select, TrainOutcome, ValScores,
-};
+use crate::state::{CheckpointOptions, EpochRecord, Scoring, Select, TrainOutcome, ValScores};
 use crate::trainer::{improves, score_label_free};
 use crossview_core::{Error, Result};
 use crossview_model::EncoderWeights;
@@ -105,7 +103,8 @@ impl PopulationOutcome {
             self.winner,
             w.seed,
             self.members.len(),
-            w.best_key.map_or("-".into(), |k| format!("{:.2}", 100.0 * k))
+            w.best_key
+                .map_or("-".into(), |k| format!("{:.2}", 100.0 * k))
         );
         for (i, m) in self.members.iter().enumerate() {
             if let Some(e) = m.dropped_at {
@@ -175,12 +174,13 @@ pub fn run_population(
     opts: &PopulationOptions,
 ) -> Result<PopulationOutcome> {
     if members.is_empty() {
-        return Err(Error::Training("a population needs at least one member".into()));
+        return Err(Error::Training(
+            "a population needs at least one member".into(),
+        ));
     }
     if members.len() > 1 && scoring.label_free.is_none() && scoring.validator.is_none() {
         return Err(Error::Training(
-            "a population needs a score to choose its members: hold out frames (--holdout)"
-                .into(),
+            "a population needs a score to choose its members: hold out frames (--holdout)".into(),
         ));
     }
     let multi = if progress {
@@ -216,7 +216,14 @@ pub fn run_population(
         let from = slots[first].member.epoch();
         let to = round_end(&cfg, from, &halvings);
         let stop = ckpt.interrupt.as_deref();
-        let recs = train_round(&mut slots, &alive, to, scoring.label_free, opts.threads, stop)?;
+        let recs = train_round(
+            &mut slots,
+            &alive,
+            to,
+            scoring.label_free,
+            opts.threads,
+            stop,
+        )?;
         for (i, mut rec) in alive.iter().copied().zip(recs) {
             end_round(&mut slots[i], &mut rec, &mut scoring)?;
             let epoch = rec.epoch;
@@ -270,11 +277,9 @@ fn halving_epochs(cfg: &TrainConfig, halve_at: &[f64]) -> Vec<usize> {
 /// or the end of the run, whichever comes first.
 fn round_end(cfg: &TrainConfig, from: usize, halvings: &[usize]) -> usize {
     let total = cfg.epochs + cfg.self_train_epochs;
-    let next_score = if cfg.val_every > 0 {
-        (from / cfg.val_every + 1) * cfg.val_every
-    } else {
-        total
-    };
+    let next_score = from
+        .checked_div(cfg.val_every)
+        .map_or(total, |k| (k + 1) * cfg.val_every);
     let next_halving = halvings
         .iter()
         .copied()

@@ -6,15 +6,15 @@ use std::path::PathBuf;
 
 use crossview_core::{CameraSpec, Error, Result};
 use crossview_data::recording::{Recording, read_recording, read_recordings};
-use crossview_model::{EncoderWeights, ModelMetadata};
 use crossview_model::export::{read_weights, write_onnx};
+use crossview_model::{EncoderWeights, ModelMetadata};
 
 use crate::TrainingSet;
 use crate::calibrate::calibrate;
 use crate::clean::BoxFilter;
 use crate::curve::write_svg;
 use crate::label_free::LabelFreeScorer;
-use crate::population::{PopulationOptions, train_population};
+use crate::population::{PopulationOptions, PopulationOutcome, train_population};
 use crate::sampler::MIN_FRAMES;
 use crate::trainer::{
     CheckpointOptions, Scoring, Select, TrainConfig, TrainOutcome, Validator, train_from,
@@ -100,28 +100,7 @@ pub fn run(opts: RunOptions) -> Result<RunReport> {
         validator: validator.as_mut().map(|v| v as &mut dyn Validator),
         select: opts.select,
     };
-    let (outcome, population) = if opts.population.size > 1 {
-        let p = train_population(
-            &set,
-            &cfg,
-            init.as_ref(),
-            scoring,
-            &opts.checkpoint,
-            opts.progress,
-            &opts.population,
-        )?;
-        (p.outcome.clone(), Some(p))
-    } else {
-        let out = train_from(
-            &set,
-            &cfg,
-            init.as_ref(),
-            scoring,
-            &opts.checkpoint,
-            opts.progress,
-        )?;
-        (out, None)
-    };
+    let (outcome, population) = train_members(&set, &cfg, init.as_ref(), scoring, &opts)?;
     let data_name = opts.data_name.clone().unwrap_or_else(|| {
         opts.data
             .iter()
@@ -177,6 +156,40 @@ pub fn run(opts: RunOptions) -> Result<RunReport> {
         data: read_summary,
         curve,
     })
+}
+
+/// Trains a population (when `opts.population` asks for one and something can rank its
+/// members) or a single run; the outcome to export and the population's report.
+fn train_members(
+    set: &TrainingSet,
+    cfg: &TrainConfig,
+    init: Option<&EncoderWeights>,
+    scoring: Scoring<'_>,
+    opts: &RunOptions,
+) -> Result<(TrainOutcome, Option<PopulationOutcome>)> {
+    let rankable = scoring.label_free.is_some() || scoring.validator.is_some();
+    if opts.population.size > 1 && !rankable {
+        tracing::warn!(
+            population = opts.population.size,
+            "nothing to rank a population by (no frames held out): training one member"
+        );
+    }
+    let (outcome, population) = if opts.population.size > 1 && rankable {
+        let p = train_population(
+            set,
+            cfg,
+            init,
+            scoring,
+            &opts.checkpoint,
+            opts.progress,
+            &opts.population,
+        )?;
+        (p.outcome.clone(), Some(p))
+    } else {
+        let out = train_from(set, cfg, init, scoring, &opts.checkpoint, opts.progress)?;
+        (out, None)
+    };
+    Ok((outcome, population))
 }
 
 /// Reads the training recording and turns it into the cleaned training set; what reading

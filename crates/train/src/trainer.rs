@@ -4,7 +4,6 @@
 //! with best-model keeping, checkpoints and resume. Deterministic in the seed on one machine.
 use std::time::Instant;
 
-use indicatif::{ProgressBar, ProgressStyle};
 use crate::checkpoint;
 pub use crate::config::{LrSchedule, TrainConfig};
 use crate::data::TrainingSet;
@@ -17,6 +16,7 @@ pub use crate::state::{
 use crate::validate::CandleEncoder;
 use crossview_core::Result;
 use crossview_model::EncoderWeights;
+use indicatif::{ProgressBar, ProgressStyle};
 
 /// Trains on `set` with `cfg`; scores with `scoring` every `cfg.val_every` epochs and at the
 /// end, keeping the best weights by `scoring.select`. `progress` shows a progress bar on
