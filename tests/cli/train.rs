@@ -1,7 +1,8 @@
 //! `crossview train` as a user runs it: writes the ONNX model (with metadata; the epoch chosen
 //! without labels on held-out frames), the SVG curve and the history; records the training-box
 //! filter; refuses a one-camera recording and a filter that leaves no boxes clearly.
-use std::process::Command;
+use std::path::Path;
+use std::process::{Command, Output};
 
 use crossview_core::{CameraSpec, Detection, Frame, SceneSpec};
 use crossview_data::Recording;
@@ -43,6 +44,30 @@ pub(crate) fn recording(cameras: usize, frames: usize, ids: bool) -> Recording {
         },
         frames,
     }
+}
+
+/// Runs `crossview train --quiet ARGS --data DATA --out OUT` and returns what it printed.
+pub(crate) fn train(data: &Path, out: &Path, args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_crossview"))
+        .args(["train", "--quiet"])
+        .args(args)
+        .arg("--data")
+        .arg(data)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap()
+}
+
+/// [`train`], which must succeed (its log is the failure message).
+pub(crate) fn train_ok(data: &Path, out: &Path, args: &[&str]) -> Output {
+    let st = train(data, out, args);
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    st
 }
 
 #[test]
@@ -113,28 +138,16 @@ fn without_validation_the_given_threshold_is_kept() {
     let data = dir.path().join("train.jsonl");
     write_recording(&data, &recording(3, 20, true)).unwrap();
     let out = dir.path().join("m.onnx");
-    let st = Command::new(env!("CARGO_BIN_EXE_crossview"))
-        .args(["train", "--quiet", "--epochs", "1", "--width", "16"])
-        .args(["--self-train-epochs", "0"])
-        .args([
-            "--fourier-features",
-            "4",
-            "--camera-dim",
-            "4",
-            "--threshold",
-            "0.3",
-        ])
-        .arg("--data")
-        .arg(&data)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
-    );
+    let args = ["--epochs", "1", "--width", "16", "--self-train-epochs", "0"];
+    let threshold = [
+        "--fourier-features",
+        "4",
+        "--camera-dim",
+        "4",
+        "--threshold",
+        "0.3",
+    ];
+    train_ok(&data, &out, &[&args[..], &threshold[..]].concat());
     let (_, meta) = read_weights(&out).unwrap();
     assert!((meta.threshold - 0.3).abs() < 1e-6);
     assert!(!meta.extra.contains_key("crossview.validation"));

@@ -9,7 +9,7 @@ use crossview_data::recording::write_recording;
 use crossview_model::read_weights;
 use crossview_testing::signal;
 
-use crate::train::recording;
+use crate::train::{recording, train_ok};
 
 const SMALL: [&str; 12] = [
     "--width",
@@ -91,23 +91,14 @@ fn ctrl_c_keeps_the_best_model_so_far_and_a_checkpoint_that_resumes() {
 
     // Resuming continues from there to the end of a (now shorter) run.
     let total = (done + 2).to_string();
-    let st = Command::new(env!("CARGO_BIN_EXE_crossview"))
-        .args(["train", "--quiet", "--epochs", &total])
-        .args(SMALL)
-        .arg("--data")
-        .arg(&data)
-        .arg("--out")
-        .arg(&out)
-        .arg("--checkpoint-dir")
-        .arg(&ckpt)
-        .arg("--resume")
-        .output()
-        .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
-    );
+    let resume = [
+        "--epochs",
+        &total,
+        "--checkpoint-dir",
+        ckpt.to_str().unwrap(),
+        "--resume",
+    ];
+    train_ok(&data, &out, &[&resume[..], &SMALL[..]].concat());
     let (_, meta) = read_weights(&out).unwrap();
     assert_eq!(meta.extra["crossview.epochs_run"], total);
     let hist: serde_json::Value =
@@ -122,20 +113,7 @@ fn a_completed_run_removes_its_default_checkpoint() {
     let data = dir.path().join("train.jsonl");
     write_recording(&data, &recording(3, 20, false)).unwrap();
     let out = dir.path().join("m.onnx");
-    let st = Command::new(env!("CARGO_BIN_EXE_crossview"))
-        .args(["train", "--quiet", "--epochs", "2"])
-        .args(SMALL)
-        .arg("--data")
-        .arg(&data)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
-    );
+    train_ok(&data, &out, &[&["--epochs", "2"][..], &SMALL[..]].concat());
     assert!(out.is_file());
     assert!(!dir.path().join("m.checkpoint").exists());
 }

@@ -1,12 +1,10 @@
 //! `crossview train --population K`: K members trained side by side, the worse ones dropped
 //! by the label-free key; the model file records every member and which one won; without
 //! held-out frames to rank them, the flag is refused.
-use std::process::Command;
-
 use crossview_data::recording::write_recording;
 use crossview_model::read_weights;
 
-use crate::train::recording;
+use crate::train::{recording, train, train_ok};
 
 const SMALL: [&str; 14] = [
     "--width",
@@ -32,20 +30,8 @@ fn a_population_records_its_members_and_the_winner() {
     write_recording(&data, &recording(3, 40, false)).unwrap();
     let out = dir.path().join("m.onnx");
     // One thread: halving goes down to one member (it keeps one per thread).
-    let st = Command::new(env!("CARGO_BIN_EXE_crossview"))
-        .args(["train", "--quiet", "--population", "3", "--threads", "1"])
-        .args(SMALL)
-        .arg("--data")
-        .arg(&data)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
-    );
+    let args = ["--population", "3", "--threads", "1"];
+    let st = train_ok(&data, &out, &[&args[..], &SMALL[..]].concat());
     let stdout = String::from_utf8_lossy(&st.stdout);
     assert!(stdout.contains("population: member"), "{stdout}");
     let (_, meta) = read_weights(&out).unwrap();
@@ -70,14 +56,8 @@ fn a_population_without_held_out_frames_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("train.jsonl");
     write_recording(&data, &recording(3, 20, false)).unwrap();
-    let st = Command::new(env!("CARGO_BIN_EXE_crossview"))
-        .args(["train", "--quiet", "--population", "2", "--holdout", "0"])
-        .arg("--data")
-        .arg(&data)
-        .arg("--out")
-        .arg(dir.path().join("m.onnx"))
-        .output()
-        .unwrap();
+    let out = dir.path().join("m.onnx");
+    let st = train(&data, &out, &["--population", "2", "--holdout", "0"]);
     assert!(!st.status.success());
     let err = String::from_utf8_lossy(&st.stderr);
     assert!(err.contains("--holdout"), "{err}");

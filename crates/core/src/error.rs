@@ -118,14 +118,7 @@ impl Error {
     /// The message followed by its chain of sources, `a: b: c`: what clients and logs see,
     /// so a wrapped runtime error still says what went wrong.
     pub fn report(&self) -> String {
-        let mut out = self.to_string();
-        let mut next = std::error::Error::source(self);
-        while let Some(e) = next {
-            out.push_str(": ");
-            out.push_str(&e.to_string());
-            next = e.source();
-        }
-        out
+        report_chain(self)
     }
 
     /// Shorthand for [`Error::Model`].
@@ -152,4 +145,17 @@ impl Error {
             Error::Training(_) => "training",
         }
     }
+}
+
+/// Any error's message followed by its chain of sources, `a: b: c` (what [`Error::report`]
+/// and the server's own error type show).
+pub fn report_chain(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut out = e.to_string();
+    let mut next = e.source();
+    while let Some(e) = next {
+        out.push_str(": ");
+        out.push_str(&e.to_string());
+        next = e.source();
+    }
+    out
 }

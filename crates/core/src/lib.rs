@@ -22,7 +22,7 @@ pub mod types;
 use ndarray::Array2;
 
 pub use embeddings::FrameEmbeddings;
-pub use error::{Error, Result};
+pub use error::{Error, Result, report_chain};
 pub use types::{Batch, CameraSpec, Detection, Frame, SceneSpec};
 
 /// Anything that turns normalised boxes into geometric embeddings (SPEC §2).

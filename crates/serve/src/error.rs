@@ -72,14 +72,7 @@ impl Error {
 
     /// The message followed by its chain of sources, `a: b: c`: what clients and logs see.
     pub fn report(&self) -> String {
-        let mut out = self.to_string();
-        let mut next = std::error::Error::source(self);
-        while let Some(e) = next {
-            out.push_str(": ");
-            out.push_str(&e.to_string());
-            next = e.source();
-        }
-        out
+        crossview_core::report_chain(self)
     }
 
     /// A short, stable kind label (used for metrics and logs); a core error keeps its own.
