@@ -179,3 +179,32 @@ fn a_population_without_a_score_is_refused() {
     .unwrap_err();
     assert!(e.to_string().contains("--holdout"), "{e}");
 }
+
+/// A cloned member is independent and continues exactly: the clone and the original, advanced
+/// by the same epoch with the same seed, end with the same weights, and training the clone
+/// leaves the original where it was.
+#[test]
+fn a_cloned_member_continues_exactly_and_apart() {
+    let (set, _) = set_and_scorer();
+    let cfg = TrainConfig {
+        epochs: 4,
+        ..recipe()
+    };
+    let mut original = Member::new(&set, &cfg, None).unwrap();
+    for _ in 0..2 {
+        original.train_epoch(&|| ()).unwrap();
+    }
+    let untouched = original.clone_with_seed(cfg.seed).unwrap();
+    let mut clone = original.clone_with_seed(cfg.seed).unwrap();
+    original.train_epoch(&|| ()).unwrap();
+    clone.train_epoch(&|| ()).unwrap();
+    let select = crossview_train::trainer::Select::LabelFree;
+    let (a, b) = (
+        original.finish(select).unwrap(),
+        clone.finish(select).unwrap(),
+    );
+    assert_eq!(a.weights, b.weights);
+    let before = untouched.finish(select).unwrap();
+    assert_eq!(before.best_epoch, 2);
+    assert_ne!(before.weights, a.weights);
+}

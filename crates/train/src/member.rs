@@ -148,6 +148,20 @@ impl<'s> Member<'s> {
         self.st.ema.as_ref().unwrap_or(&self.st.model)
     }
 
+    /// A progress bar over every optimiser step of this member's run, drawn with
+    /// `template` and already at the member's current epoch.
+    pub fn steps_bar(&self, template: &str) -> indicatif::ProgressBar {
+        let per_epoch = self.steps_per_epoch() as u64;
+        let b = indicatif::ProgressBar::new(per_epoch * self.total_epochs() as u64);
+        b.set_style(
+            indicatif::ProgressStyle::with_template(template)
+                .expect("valid template")
+                .progress_chars("=> "),
+        );
+        b.set_position(self.epoch() as u64 * per_epoch);
+        b
+    }
+
     /// Adds scoring time (it chooses the exported model, so it counts as training time).
     pub fn add_seconds(&mut self, secs: f64) {
         self.st.train_seconds += secs;

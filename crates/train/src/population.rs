@@ -12,7 +12,7 @@
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
+use indicatif::{MultiProgress, ProgressBar};
 use serde::{Deserialize, Serialize};
 
 use crate::config::TrainConfig;
@@ -462,17 +462,8 @@ fn save_reports(dir: &Path, members: &[MemberReport]) -> Result<()> {
 
 /// A member's progress bar.
 fn member_bar(member: &Member<'_>, i: usize) -> ProgressBar {
-    let per_epoch = member.steps_per_epoch() as u64;
-    let b = ProgressBar::new(per_epoch * member.total_epochs() as u64);
-    b.set_style(
-        ProgressStyle::with_template(
-            "{prefix} {elapsed_precise} [{bar:24}] {percent:>3}% eta {eta} {msg}",
-        )
-        .expect("valid template")
-        .progress_chars("=> "),
-    );
+    let b = member.steps_bar("{prefix} {elapsed_precise} [{bar:24}] {percent:>3}% eta {eta} {msg}");
     b.set_prefix(format!("member {i} (seed {})", member.config().seed));
-    b.set_position(member.epoch() as u64 * per_epoch);
     b
 }
 

@@ -16,7 +16,7 @@ pub use crate::state::{
 use crate::validate::CandleEncoder;
 use crossview_core::Result;
 use crossview_model::EncoderWeights;
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 
 /// Trains on `set` with `cfg`; scores with `scoring` every `cfg.val_every` epochs and at the
 /// end, keeping the best weights by `scoring.select`. `progress` shows a progress bar on
@@ -104,17 +104,7 @@ fn progress_bar(member: &Member<'_>, show: bool) -> ProgressBar {
     if !show {
         return ProgressBar::hidden();
     }
-    let per_epoch = member.steps_per_epoch() as u64;
-    let b = ProgressBar::new(per_epoch * member.total_epochs() as u64);
-    b.set_style(
-        ProgressStyle::with_template(
-            "{elapsed_precise} [{bar:30}] {pos}/{len} steps {per_sec} eta {eta} {msg}",
-        )
-        .expect("valid template")
-        .progress_chars("=> "),
-    );
-    b.set_position(member.epoch() as u64 * per_epoch);
-    b
+    member.steps_bar("{elapsed_precise} [{bar:30}] {pos}/{len} steps {per_sec} eta {eta} {msg}")
 }
 
 /// Scores the member's current (averaged) weights into `rec` — label-free and/or labelled —
