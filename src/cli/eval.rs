@@ -13,6 +13,7 @@ use crossview_core::Encoder;
 use crossview_core::association::{
     AssociationConfig, FrameAssociation, Mode, associate_frame, embed_frame,
 };
+use crossview_core::identity::IdentityMethod;
 use crossview_core::matching::Match;
 use crossview_core::tracking::{Tracker, TrackerConfig};
 use crossview_core::{CameraSpec, Frame, SceneSpec};
@@ -41,19 +42,23 @@ pub struct EvalArgs {
     /// `crossview.threshold`).
     #[arg(long)]
     pub threshold: Option<f32>,
-    /// Threshold on the identity confidence for the calibrated and identity rows (default:
-    /// the model's `crossview.match_threshold`, else its `crossview.threshold`).
+    /// Threshold on the calibrated `P` for the calibrated row (default: the model's
+    /// `crossview.match_threshold`, else its `crossview.threshold`).
     #[arg(long)]
     pub match_threshold: Option<f32>,
     /// Appearance weight (default: the model's `crossview.alpha`; used only with appearance).
     #[arg(long)]
     pub alpha: Option<f32>,
-    /// Identity weights (for studies; defaults in `core::identity`): per agreeing third
-    /// camera, per dissenting third camera, and per contradicted box pair.
-    #[arg(long, num_args = 3, value_names = ["SUPPORT", "DISSENT", "CONFLICT"])]
-    pub identity_weights: Option<Vec<f32>>,
-    /// Extra thresholds to sweep (comma-separated): pairwise rows on `S`, and calibrated and
-    /// identity rows on the identity confidence.
+    /// Identity method (for studies): `clustering` (what ships) or `union-find` (the plain
+    /// baseline).
+    #[arg(long, default_value = "clustering")]
+    pub identity_method: IdentityMethod,
+    /// Identity parameters (for studies; default: the method's measured ones, see
+    /// `core::identity`): the link threshold and the support per agreeing third camera.
+    #[arg(long, num_args = 2, value_names = ["THRESHOLD", "SUPPORT"])]
+    pub identity_params: Option<Vec<f32>>,
+    /// Extra thresholds to sweep (comma-separated): pairwise rows on `S`, calibrated rows on
+    /// `P`, identity rows on the link threshold.
     #[arg(long, value_delimiter = ',')]
     pub sweep: Vec<f32>,
     /// Write a JSON report (rates as fractions in [0, 1]).
@@ -274,15 +279,14 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let meta = encoders[0].metadata().clone();
     check_scene(&recording.scene, &meta)?;
     let mut base = config(&meta, args.threshold, args.match_threshold, args.alpha)?;
-    if let Some(w) = &args.identity_weights {
+    let (link, support) = args.identity_method.defaults();
+    base.identity.method = args.identity_method;
+    (base.identity.link_threshold, base.identity.support) = (link, support);
+    if let Some(w) = &args.identity_params {
         if w.iter().any(|v| !v.is_finite() || *v < 0.0) {
-            bail!("--identity-weights must be finite and non-negative, got {w:?}");
+            bail!("--identity-params must be finite and non-negative, got {w:?}");
         }
-        (
-            base.identity.support_bonus,
-            base.identity.dissent_penalty,
-            base.identity.conflict_penalty,
-        ) = (w[0], w[1], w[2]);
+        (base.identity.link_threshold, base.identity.support) = (w[0], w[1]);
     }
     // Rows: SPEC §3 pairwise (what the paper's metrics mean), pairwise on the calibrated
     // confidence when the model has one, and the identities the service returns.

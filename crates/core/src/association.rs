@@ -29,9 +29,9 @@ pub enum Mode {
     /// SPEC §3: each camera pair matched on its own, Hungarian pairs with `S ≥ threshold`.
     #[default]
     Pairwise,
-    /// **[ours]** each camera pair on its own, Hungarian pairs whose identity confidence
-    /// (calibrated `P(same | distance)` when the model has a calibration, else `S`) reaches
-    /// the identity threshold.
+    /// **[ours]** each camera pair on its own, Hungarian pairs whose calibrated
+    /// `P(same | distance)` (`S` when the model has no calibration) reaches the calibrated
+    /// threshold (`IdentityConfig::threshold`).
     Calibrated,
     /// **[ours]** the matches implied by the identities.
     Identities,
@@ -78,11 +78,13 @@ pub struct AssociationConfig {
 
 impl AssociationConfig {
     /// The threshold `mode`'s matches are kept at: SPEC §3's on `S` for [`Mode::Pairwise`],
-    /// the identity threshold for the others.
+    /// the calibrated pairwise threshold for [`Mode::Calibrated`], the identities' link
+    /// threshold for [`Mode::Identities`].
     pub fn threshold_of(&self, mode: Mode) -> f32 {
         match mode {
             Mode::Pairwise => self.threshold,
-            Mode::Calibrated | Mode::Identities => self.identity.threshold,
+            Mode::Calibrated => self.identity.threshold,
+            Mode::Identities => self.identity.link_threshold,
         }
     }
 
@@ -93,7 +95,8 @@ impl AssociationConfig {
         cfg.mode = mode;
         match mode {
             Mode::Pairwise => cfg.threshold = threshold,
-            Mode::Calibrated | Mode::Identities => cfg.identity.threshold = threshold,
+            Mode::Calibrated => cfg.identity.threshold = threshold,
+            Mode::Identities => cfg.identity.link_threshold = threshold,
         }
         cfg
     }
@@ -389,7 +392,11 @@ mod tests {
         let cfg = AssociationConfig {
             mode: Mode::Identities,
             threshold: 0.0,
-            identity: IdentityConfig::new(None, 0.0),
+            // A lone pair's S is ≈ 0 but positive: kept at a zero link threshold.
+            identity: IdentityConfig {
+                link_threshold: 0.0,
+                ..IdentityConfig::new(None, 0.0)
+            },
             ..Default::default()
         };
         let fa = associate_frame(&frame, emb, &cfg);

@@ -56,6 +56,20 @@ pub struct PairMatching {
     pub assignment: Vec<Assigned>,
     /// Hungarian pairs with `score >= threshold`, sorted by `a` (SPEC §3 pairwise matching).
     pub matches: Vec<Match>,
+    /// The raw geometric distance of any entry is `(1 − scores[(a, b)]) · distance_scale`
+    /// (so the identities can read a calibrated `P` off every entry, not only the assigned
+    /// ones); NaN when appearance was fused into `D` and the raw distances cannot be read back.
+    pub distance_scale: f32,
+}
+
+impl PairMatching {
+    /// Raw geometric distance of entry `(a, b)` (see [`Self::distance_scale`]); NaN when it
+    /// cannot be read back or `(a, b)` is out of range.
+    pub fn distance(&self, a: usize, b: usize) -> f32 {
+        self.scores
+            .get((a, b))
+            .map_or(f32::NAN, |s| (1.0 - s) * self.distance_scale)
+    }
 }
 
 /// Minimum-cost one-to-one assignment: `min(n, m)` pairs `(row, col)`, sorted by row
@@ -158,6 +172,7 @@ pub fn match_from_distances(
         scores: dg,
         assignment,
         matches,
+        distance_scale: if raw.is_some() { f32::NAN } else { scale },
     }
 }
 

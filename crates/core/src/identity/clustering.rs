@@ -1,10 +1,9 @@
 //! Greedy additive clustering of the evidence: the two clusters with the largest total weight
-//! between them merge while it is ≥ 0 and their cameras are disjoint (the parent module's
+//! between them merge while it is positive and their cameras are disjoint (the parent module's
 //! documentation), with a max-heap of versioned candidates.
 use std::collections::BinaryHeap;
 
-use super::Identity;
-use super::evidence::{Evidence, NONE, confidence};
+use super::evidence::{Evidence, NONE};
 
 /// A merge candidate: clusters `lo < hi` at total weight `w`, valid while both clusters still
 /// have the (16-bit, wrapping) versions they had when it was pushed. Packed into one integer
@@ -53,7 +52,7 @@ const END: usize = usize::MAX;
 
 /// Working state of the clustering (a cluster is named by its smallest box index).
 pub(super) struct Clustering<'a> {
-    ev: &'a Evidence,
+    ev: &'a Evidence<'a>,
     /// Camera bitset of each cluster (`words` u64 per cluster).
     cams: Vec<u64>,
     words: usize,
@@ -70,7 +69,7 @@ pub(super) struct Clustering<'a> {
 
 impl<'a> Clustering<'a> {
     /// Every box its own cluster, the heap seeded with every Hungarian pair's candidate.
-    pub(super) fn new(ev: &'a Evidence) -> Self {
+    pub(super) fn new(ev: &'a Evidence<'a>) -> Self {
         let (n, cameras) = (ev.cam_of.len(), ev.cameras);
         let words = cameras.div_ceil(64).max(1);
         let mut cams = vec![0u64; n * words];
@@ -119,10 +118,10 @@ impl<'a> Clustering<'a> {
         }
     }
 
-    /// The final clusters as identities, numbered by their first box, members sorted.
-    pub(super) fn identities(&self) -> Vec<Identity> {
-        let ev = self.ev;
-        let mut clusters: Vec<Vec<usize>> = (0..ev.cam_of.len())
+    /// The final clusters (boxes in the frame's numbering), each sorted, ordered by their
+    /// first box.
+    pub(super) fn clusters(&self) -> Vec<Vec<usize>> {
+        let mut clusters: Vec<Vec<usize>> = (0..self.ev.cam_of.len())
             .filter(|&r| self.root[r] == r)
             .map(|r| {
                 let mut m: Vec<usize> = self.members(r).collect();
@@ -132,17 +131,6 @@ impl<'a> Clustering<'a> {
             .collect();
         clusters.sort_unstable_by_key(|m| m[0]);
         clusters
-            .into_iter()
-            .enumerate()
-            .map(|(id, m)| Identity {
-                id,
-                confidence: confidence(ev, &m).clamp(0.0, 1.0),
-                members: m
-                    .iter()
-                    .map(|&i| (ev.cam_of[i], i - ev.offsets[ev.cam_of[i]]))
-                    .collect(),
-            })
-            .collect()
     }
 }
 
@@ -177,7 +165,7 @@ impl Clustering<'_> {
         }
         let w = self.weight(r, s);
         let (lo, hi) = (r.min(s), r.max(s));
-        (w >= 0.0).then(|| Candidate::new(w, lo, hi, (self.version[lo], self.version[hi])))
+        (w > 0.0).then(|| Candidate::new(w, lo, hi, (self.version[lo], self.version[hi])))
     }
 
     fn merge(&mut self, r: usize, s: usize) {

@@ -1,42 +1,37 @@
-//! **[ours]** Identities: the camera pairs' Hungarian matches of one frame turned into
-//! persons — clusters with at most one box per camera — that are consistent across views.
+//! **[ours]** Identities: the camera pairs' matchings of one frame turned into persons —
+//! clusters with at most one box per camera — that are consistent across views.
 //!
-//! # Scheme: greedy additive clustering of the Hungarian evidence
+//! # Scheme: correlation clustering of the full pairwise affinities
 //!
-//! Pairwise matching is good at what it decides (each camera pair's one-to-one assignment)
-//! but decides each pair alone, so its results can contradict each other (A1↔B1, B1↔C1 but
-//! A1↔C2). Averaging raw `S` entries over clusters (the previous scheme) let unrelated,
-//! pair-normalised scores override those decisions. Here the evidence is the assignment
-//! itself. Every pair of boxes `u`, `v` in different cameras gets an additive weight:
-//! - `u`, `v` a Hungarian pair: `conf − threshold`, plus `support_bonus` for every third
-//!   camera whose Hungarian partners of `u` and of `v` are the same box, minus
-//!   `dissent_penalty` for every third camera where both have partners and they differ;
-//! - otherwise, when `u` or `v` has a *kept* Hungarian partner (`conf ≥ threshold`) in the
-//!   other's camera: `−conflict_penalty` (that camera pair chose someone else);
-//! - otherwise 0 (no evidence either way).
+//! Pairwise matching decides each camera pair alone, so its results can contradict each other
+//! (A1↔B1, B1↔C1 but A1↔C2), and with binary matches a contradicted camera triangle is a tie
+//! no vote can break. Here every pair of boxes `u`, `v` in different cameras gets an additive
+//! weight from the full score matrices ([`evidence`]):
+//! - a Hungarian pair: `c − t + b · k`, with `c = max(S, P)` (SPEC §3's `S`, and the calibrated
+//!   `P(same | distance)` when the model has a calibration, which keeps a lone correct match
+//!   whose `S` is ≈ 0) and `k` the third cameras whose Hungarian partners of `u` and of `v` are
+//!   one box;
+//! - any other entry: `min(0, P − t)` (`S` without a calibration): no evidence for, and
+//!   evidence against as far as its own confidence falls below `t`.
 //!
-//! Starting from singletons, the two clusters with the largest total weight between them are
-//! merged while that total is ≥ 0 and their camera sets are disjoint (greedy additive edge
-//! contraction, the standard heuristic for correlation clustering / multicut). Weights are
-//! additive, so merging never needs more than the member pairs of the two clusters; only
-//! clusters joined by a Hungarian pair can reach a positive total, so the candidates stay a
-//! handful per cluster, held in a max-heap with versioned entries.
+//! Starting from single boxes, the two clusters with the largest total weight between them
+//! merge while that total is positive and their cameras are disjoint (greedy additive edge
+//! contraction, the standard heuristic for correlation clustering, grown best-first with
+//! camera exclusivity as in 4D association; [`clustering`]). Two parameters, the link
+//! threshold `t` and the support `b`, chosen on the WILDTRACK training frames and the
+//! simulator presets (BENCHMARKS.md, "Identities"); the validation frames only report.
 //!
-//! Properties (tested): identities are camera-exclusive; with two cameras they are exactly
-//! the pairwise matches kept at `threshold`; when the kept matches of all camera pairs are
-//! already transitively consistent they are returned unchanged; one camera pair that swaps two
-//! persons while the other pairs agree is repaired; the result is deterministic (ties go to
-//! the lowest box indices). The method and its parameters were chosen by measurement against
-//! union-find variants on the WILDTRACK validation frames (BENCHMARKS.md, "Identities").
+//! The plain baseline — union-find over the kept `S` matches, strongest first, with a bonus
+//! per agreeing third camera ([`union_find`]) — stays as [`IdentityMethod::UnionFind`]: the
+//! tests' oracle, and a fallback.
+//!
+//! Properties (tested): identities are camera-exclusive and cover every box once; with two
+//! cameras they are the Hungarian pairs whose `max(S, P)` exceeds `t`; transitively consistent
+//! matches are returned unchanged; one camera pair that swaps two persons while the others
+//! agree is repaired; deterministic (ties go to the lowest box indices).
 //!
 //! # Confidence
-//! `conf` is the pair's calibrated `P(same person | distance)` when the model carries a
-//! [`Calibration`] (comparable across pairs and scene densities), else SPEC §3's `S`. An
-//! identity's confidence is the chance that it is right — its members are one person and no
-//! box of that person is missing:
-//! `mean conf of the Hungarian pairs inside it (1 for a single box)
-//!  × ∏ over the other cameras (1 − the best conf of a member's Hungarian partner there)`.
-//! A single box that no camera pair assigned, while other cameras have boxes, gets 0.5.
+//! See [`confidence`]: the geometric mean of cohesion, completeness and camera coverage.
 use std::sync::Arc;
 
 use crate::calibration::Calibration;
@@ -44,7 +39,9 @@ use crate::matching::ViewPair;
 use crate::matching::{Assigned, Match, PairMatching};
 
 mod clustering;
+mod confidence;
 mod evidence;
+mod union_find;
 
 use clustering::Clustering;
 use evidence::{Evidence, NONE};
@@ -68,36 +65,90 @@ impl Identity {
     }
 }
 
-/// How a frame's Hungarian pairs become identities.
+/// How a frame's boxes are grouped into identities.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum IdentityMethod {
+    /// Correlation clustering of the full pairwise affinities (the module documentation).
+    #[default]
+    Clustering,
+    /// The plain baseline: union-find over the kept `S` matches ([`union_find`]).
+    UnionFind,
+}
+
+impl IdentityMethod {
+    /// The measured `(link threshold, support)` of this method (BENCHMARKS.md).
+    pub fn defaults(self) -> (f32, f32) {
+        match self {
+            IdentityMethod::Clustering => (0.4, 0.125),
+            IdentityMethod::UnionFind => (0.5, 0.3),
+        }
+    }
+}
+
+impl std::str::FromStr for IdentityMethod {
+    type Err = crate::Error;
+    fn from_str(s: &str) -> crate::Result<Self> {
+        match s {
+            "clustering" => Ok(IdentityMethod::Clustering),
+            "union-find" => Ok(IdentityMethod::UnionFind),
+            other => Err(crate::Error::invalid(
+                "identity method",
+                format!("expected 'clustering' or 'union-find', got '{other}'"),
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for IdentityMethod {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            IdentityMethod::Clustering => "clustering",
+            IdentityMethod::UnionFind => "union-find",
+        })
+    }
+}
+
+/// How a frame's pairs become identities.
 #[derive(Debug, Clone, PartialEq)]
 pub struct IdentityConfig {
-    /// The model's calibration: with it a pair's confidence is `P(same | distance)`, without
-    /// it SPEC §3's `S`.
+    /// The model's calibration: with it a pair's probability is `P(same | distance)`.
     pub calibration: Option<Arc<Calibration>>,
-    /// A Hungarian pair counts as a kept match when its confidence is at least this.
+    /// Threshold of the calibrated pairwise matches ([`Self::kept`]; `P`, else `S`).
     pub threshold: f32,
-    /// Weight added per third camera that agrees with a Hungarian pair.
-    pub support_bonus: f32,
-    /// Weight removed per third camera that contradicts a Hungarian pair.
-    pub dissent_penalty: f32,
-    /// Weight of a box pair that a kept match of its camera pair contradicts.
-    pub conflict_penalty: f32,
+    /// How boxes are grouped.
+    pub method: IdentityMethod,
+    /// `t`: the confidence a link must exceed (on `max(S, P)` for the clustering, on `S`
+    /// for the union-find).
+    pub link_threshold: f32,
+    /// `b`: weight added to a link per third camera that agrees with it.
+    pub support: f32,
 }
 
 impl IdentityConfig {
-    /// The measured defaults (BENCHMARKS.md) around a confidence `threshold`.
+    /// The default method with its measured parameters; `threshold` is the calibrated
+    /// pairwise threshold ([`Self::kept`]).
     pub fn new(calibration: Option<Arc<Calibration>>, threshold: f32) -> Self {
+        IdentityConfig::with_method(calibration, threshold, IdentityMethod::default())
+    }
+
+    /// `method` with its measured parameters ([`IdentityMethod::defaults`]).
+    pub fn with_method(
+        calibration: Option<Arc<Calibration>>,
+        threshold: f32,
+        method: IdentityMethod,
+    ) -> Self {
+        let (link_threshold, support) = method.defaults();
         IdentityConfig {
             calibration,
             threshold,
-            support_bonus: 0.1,
-            dissent_penalty: 0.05,
-            conflict_penalty: 0.3,
+            method,
+            link_threshold,
+            support,
         }
     }
 
-    /// The confidence of one Hungarian pair: calibrated probability, or `S`. Non-finite
-    /// values become 0 (no evidence).
+    /// The probability of one Hungarian pair: calibrated `P`, or `S` without a calibration.
+    /// Non-finite values become 0 (no evidence).
     pub fn confidence(&self, p: &Assigned) -> f32 {
         let c = match &self.calibration {
             Some(cal) => cal.probability(p.distance),
@@ -106,8 +157,19 @@ impl IdentityConfig {
         if c.is_finite() { c } else { 0.0 }
     }
 
-    /// The Hungarian pairs of `m` whose confidence reaches the threshold, scored with that
-    /// confidence: pairwise matching under this configuration's measure.
+    /// The link confidence of one Hungarian pair: `max(S, P)` (`S` without a calibration):
+    /// `S` ranks a pair among its camera pair's boxes, `P` keeps a lone match whose `S` is
+    /// ≈ 0. Non-finite values become 0.
+    pub fn link_confidence(&self, p: &Assigned) -> f32 {
+        let s = if p.score.is_finite() { p.score } else { 0.0 };
+        match &self.calibration {
+            Some(_) => self.confidence(p).max(s),
+            None => s,
+        }
+    }
+
+    /// The Hungarian pairs of `m` whose [`Self::confidence`] reaches [`Self::threshold`]:
+    /// pairwise matching on the calibrated probability.
     pub fn kept(&self, m: &PairMatching) -> Vec<Match> {
         m.assignment
             .iter()
@@ -124,7 +186,7 @@ impl IdentityConfig {
 }
 
 impl Default for IdentityConfig {
-    /// Uncalibrated, threshold 0.4 (SPEC §3's WILDTRACK setting).
+    /// Uncalibrated, calibrated-pairwise threshold 0.4 (SPEC §3's WILDTRACK setting).
     fn default() -> Self {
         IdentityConfig::new(None, 0.4)
     }
@@ -133,10 +195,10 @@ impl Default for IdentityConfig {
 /// Builds the identities of one frame.
 ///
 /// `view_sizes[c]` is the number of boxes of camera `c` (0 for cameras without boxes or
-/// that did not report); `pairs` holds the Hungarian assignments of camera pairs (`cam_a !=
-/// cam_b`, assignment indices within `view_sizes`; pairs that break this, and repeats of a
-/// camera pair, are ignored with a warning). Every box ends in exactly one identity, and
-/// identities are ordered by their first member. See the module documentation.
+/// that did not report); `pairs` holds the matchings of camera pairs (`cam_a != cam_b`,
+/// score matrices of shape `view_sizes[cam_a] × view_sizes[cam_b]`; pairs that break this,
+/// and repeats of a camera pair, are ignored with a warning). Every box ends in exactly one
+/// identity, and identities are ordered by their first member. See the module documentation.
 pub fn build_identities(
     view_sizes: &[usize],
     pairs: &[ViewPair],
@@ -154,9 +216,32 @@ pub fn build_identities(
         return singletons(view_sizes);
     }
     let ev = Evidence::collect(view_sizes, offsets, pairs, cfg);
-    let mut cl = Clustering::new(&ev);
-    cl.run();
-    cl.identities()
+    let clusters = match cfg.method {
+        IdentityMethod::Clustering => {
+            let mut cl = Clustering::new(&ev);
+            cl.run();
+            cl.clusters()
+        }
+        IdentityMethod::UnionFind => union_find::clusters(
+            view_sizes,
+            &ev.offsets,
+            pairs,
+            cfg.link_threshold,
+            cfg.support,
+        ),
+    };
+    clusters
+        .into_iter()
+        .enumerate()
+        .map(|(id, m)| Identity {
+            id,
+            confidence: confidence::confidence(&ev, &m),
+            members: m
+                .iter()
+                .map(|&i| (ev.cam_of[i], i - ev.offsets[ev.cam_of[i]]))
+                .collect(),
+        })
+        .collect()
 }
 
 /// Where each camera's boxes start in the frame's box numbering (plus the total at the end),
@@ -204,465 +289,4 @@ pub fn identity_matches(identities: &[Identity], p: &ViewPair) -> Vec<Match> {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::matching::hungarian;
-    use ndarray::{Array2, array};
-    use proptest::prelude::*;
-
-    /// A camera pair matched on `scores` (as `S`; distance = 1 − S, so a calibration is not
-    /// needed), with its SPEC §3 matches at `threshold`.
-    fn pair(cam_a: usize, cam_b: usize, scores: Array2<f32>, threshold: f32) -> ViewPair {
-        let assignment: Vec<Assigned> = hungarian(scores.mapv(|v| 1.0 - v).view())
-            .into_iter()
-            .map(|(a, b)| Assigned {
-                a,
-                b,
-                score: scores[(a, b)],
-                distance: 1.0 - scores[(a, b)],
-            })
-            .collect();
-        let matches = assignment
-            .iter()
-            .filter(|p| p.score >= threshold)
-            .map(|p| Match {
-                a: p.a,
-                b: p.b,
-                score: p.score,
-            })
-            .collect();
-        ViewPair {
-            cam_a,
-            cam_b,
-            matching: PairMatching {
-                scores,
-                assignment,
-                matches,
-            },
-        }
-    }
-
-    /// Pairwise matches implied by identities: for every camera pair of `pairs`, the boxes that
-    /// share an identity, scored with that pair's `S`. Returns `pairs` with their matches
-    /// replaced (scores and assignment unchanged, matches sorted by `a`), so evaluation can score
-    /// identities exactly like pairwise matching.
-    fn pairs_from_identities(identities: &[Identity], pairs: &[ViewPair]) -> Vec<ViewPair> {
-        pairs
-            .iter()
-            .map(|p| ViewPair {
-                cam_a: p.cam_a,
-                cam_b: p.cam_b,
-                matching: PairMatching {
-                    scores: p.matching.scores.clone(),
-                    assignment: p.matching.assignment.clone(),
-                    matches: identity_matches(identities, p),
-                },
-            })
-            .collect()
-    }
-
-    fn members(ids: &[Identity]) -> Vec<Vec<(usize, usize)>> {
-        ids.iter().map(|i| i.members.clone()).collect()
-    }
-
-    fn cfg(t: f32) -> IdentityConfig {
-        IdentityConfig::new(None, t)
-    }
-
-    #[test]
-    fn consistent_triangle_forms_two_identities() {
-        let s = array![[0.9f32, 0.1], [0.1, 0.8]];
-        let pairs = vec![
-            pair(0, 1, s.clone(), 0.4),
-            pair(0, 2, s.clone(), 0.4),
-            pair(1, 2, s, 0.4),
-        ];
-        let ids = build_identities(&[2, 2, 2], &pairs, &cfg(0.4));
-        assert_eq!(
-            members(&ids),
-            vec![vec![(0, 0), (1, 0), (2, 0)], vec![(0, 1), (1, 1), (2, 1)]]
-        );
-        assert!((ids[0].confidence - 0.9).abs() < 1e-6);
-        assert!((ids[1].confidence - 0.8).abs() < 1e-6);
-        assert_eq!(ids[1].id, 1);
-        let derived = pairs_from_identities(&ids, &pairs);
-        for (d, p) in derived.iter().zip(&pairs) {
-            assert_eq!(d.matching.matches, p.matching.matches);
-        }
-    }
-
-    #[test]
-    fn third_views_repair_a_pairwise_mistake() {
-        // Persons p = A0,B0,C0 and q = A1,B1,C1; the Hungarian of A–B swaps them.
-        let ab = array![[0.60f32, 0.62], [0.62, 0.60]];
-        let ac = array![[0.95f32, 0.10], [0.10, 0.95]];
-        let bc = array![[0.95f32, 0.10], [0.10, 0.95]];
-        let pairs = vec![
-            pair(0, 1, ab, 0.4),
-            pair(0, 2, ac, 0.4),
-            pair(1, 2, bc, 0.4),
-        ];
-        let wrong: Vec<_> = pairs[0]
-            .matching
-            .matches
-            .iter()
-            .map(|m| (m.a, m.b))
-            .collect();
-        assert_eq!(
-            wrong,
-            vec![(0, 1), (1, 0)],
-            "pairwise A–B is wrong by design"
-        );
-        let ids = build_identities(&[2, 2, 2], &pairs, &cfg(0.4));
-        assert_eq!(
-            members(&ids),
-            vec![vec![(0, 0), (1, 0), (2, 0)], vec![(0, 1), (1, 1), (2, 1)]]
-        );
-        let derived = pairs_from_identities(&ids, &pairs);
-        let fixed: Vec<_> = derived[0]
-            .matching
-            .matches
-            .iter()
-            .map(|m| (m.a, m.b))
-            .collect();
-        assert_eq!(fixed, vec![(0, 0), (1, 1)]);
-    }
-
-    #[test]
-    fn exclusivity_keeps_one_box_per_camera() {
-        let s01 = array![[0.9f32, 0.85]];
-        let s02 = array![[0.9f32]];
-        let s12 = array![[0.9f32], [0.88]];
-        let pairs = vec![
-            pair(0, 1, s01, 0.4),
-            pair(0, 2, s02, 0.4),
-            pair(1, 2, s12, 0.4),
-        ];
-        let ids = build_identities(&[1, 2, 1], &pairs, &cfg(0.4));
-        assert_eq!(
-            members(&ids),
-            vec![vec![(0, 0), (1, 0), (2, 0)], vec![(1, 1)]]
-        );
-        assert_eq!(
-            ids[1].confidence, 0.5,
-            "B1 has no Hungarian partner: a coin toss"
-        );
-        // The full identity: mean pair confidence 0.9, nothing missing.
-        assert!((ids[0].confidence - 0.9).abs() < 1e-6);
-    }
-
-    #[test]
-    fn threshold_empty_views_and_lone_cameras() {
-        let pairs = vec![pair(0, 2, array![[0.3f32]], 0.4)];
-        let ids = build_identities(&[1, 0, 1], &pairs, &cfg(0.4));
-        assert_eq!(members(&ids), vec![vec![(0, 0)], vec![(2, 0)]]);
-        assert!((ids[0].confidence - 0.7).abs() < 1e-6);
-        assert!(build_identities(&[0, 0], &[], &cfg(0.4)).is_empty());
-        let ids = build_identities(&[3], &[], &cfg(0.4));
-        assert_eq!(ids.len(), 3);
-        assert!(ids.iter().all(|i| i.confidence == 1.0));
-    }
-
-    #[test]
-    fn calibrated_confidence_keeps_a_lone_match() {
-        // One person per view: S = 1 − d/(d + 1e-6) ≈ 0 drops it; the calibrated
-        // probability of its small distance keeps it.
-        let mut p = pair(0, 1, array![[1e-6f32]], 0.5);
-        p.matching.assignment[0].distance = 0.3;
-        assert!(p.matching.matches.is_empty());
-        let cal = Calibration {
-            distances: vec![0.5, 2.0],
-            probabilities: vec![0.95, 0.05],
-            false_share: 0.5,
-            samples: [100, 100],
-        };
-        let c = IdentityConfig::new(Some(Arc::new(cal)), 0.5);
-        assert_eq!(c.kept(&p.matching).len(), 1);
-        let ids = build_identities(&[1, 1], &[p], &c);
-        assert_eq!(members(&ids), vec![vec![(0, 0), (1, 0)]]);
-        assert!((ids[0].confidence - 0.95).abs() < 1e-6);
-    }
-
-    #[test]
-    fn many_cameras_beyond_one_bitset_word() {
-        let c = 70;
-        let mut pairs = Vec::new();
-        for a in 0..c {
-            for b in a + 1..c {
-                pairs.push(pair(a, b, array![[0.9f32]], 0.4));
-            }
-        }
-        let ids = build_identities(&vec![1; c], &pairs, &cfg(0.4));
-        assert_eq!(ids.len(), 1);
-        assert_eq!(ids[0].members.len(), c);
-    }
-
-    #[test]
-    fn bad_pairs_are_ignored_not_a_panic() {
-        let good = pair(0, 1, array![[0.9f32]], 0.4);
-        let mut wrong_shape = pair(0, 1, array![[0.9f32, 0.1]], 0.4);
-        wrong_shape.matching.assignment[0].b = 7;
-        let same_cam = pair(1, 1, array![[0.9f32]], 0.4);
-        let far = pair(0, 9, array![[0.9f32]], 0.4);
-        let mut nan = pair(0, 1, array![[0.9f32]], 0.4);
-        nan.matching.assignment[0].score = f32::NAN;
-        let ids = build_identities(&[1, 1], &[wrong_shape, same_cam, far, good, nan], &cfg(0.4));
-        assert_eq!(members(&ids), vec![vec![(0, 0), (1, 0)]]);
-    }
-
-    /// Straightforward O(N⁴) clustering with the same weights and tie-breaks (clusters named
-    /// by their smallest box), to check the heap-based implementation against.
-    fn naive(
-        sizes: &[usize],
-        pairs: &[ViewPair],
-        cfg: &IdentityConfig,
-    ) -> Vec<Vec<(usize, usize)>> {
-        let nodes: Vec<(usize, usize)> = sizes
-            .iter()
-            .enumerate()
-            .flat_map(|(c, &k)| (0..k).map(move |i| (c, i)))
-            .collect();
-        let partner = |x: (usize, usize), cam: usize| -> Option<(usize, f32)> {
-            pairs.iter().find_map(|p| {
-                if (p.cam_a, p.cam_b) == (x.0, cam) {
-                    let m = p.matching.assignment.iter().find(|m| m.a == x.1)?;
-                    Some((m.b, cfg.confidence(m)))
-                } else if (p.cam_a, p.cam_b) == (cam, x.0) {
-                    let m = p.matching.assignment.iter().find(|m| m.b == x.1)?;
-                    Some((m.a, cfg.confidence(m)))
-                } else {
-                    None
-                }
-            })
-        };
-        let pw = |x: (usize, usize), y: (usize, usize)| -> f32 {
-            if x.0 == y.0 {
-                return 0.0;
-            }
-            match partner(x, y.0) {
-                Some((b, c)) if b == y.1 => {
-                    let mut w = c - cfg.threshold;
-                    for cam in 0..sizes.len() {
-                        if cam == x.0 || cam == y.0 {
-                            continue;
-                        }
-                        if let (Some((p, _)), Some((q, _))) = (partner(x, cam), partner(y, cam)) {
-                            w += if p == q {
-                                cfg.support_bonus
-                            } else {
-                                -cfg.dissent_penalty
-                            };
-                        }
-                    }
-                    w
-                }
-                _ => {
-                    let kept = |z: (usize, usize), cam| {
-                        partner(z, cam).is_some_and(|(_, c)| c >= cfg.threshold)
-                    };
-                    if kept(x, y.0) || kept(y, x.0) {
-                        -cfg.conflict_penalty
-                    } else {
-                        0.0
-                    }
-                }
-            }
-        };
-        let linked = |x: (usize, usize), y: (usize, usize)| {
-            x.0 != y.0 && partner(x, y.0).is_some_and(|(b, _)| b == y.1)
-        };
-        let mut clusters: Vec<Vec<usize>> = (0..nodes.len()).map(|i| vec![i]).collect();
-        loop {
-            let mut pick: Option<(f32, usize, usize, (usize, usize))> = None;
-            for a in 0..clusters.len() {
-                for b in a + 1..clusters.len() {
-                    let (ca, cb) = (&clusters[a], &clusters[b]);
-                    let clash = ca
-                        .iter()
-                        .any(|&i| cb.iter().any(|&j| nodes[i].0 == nodes[j].0));
-                    let any_link = ca
-                        .iter()
-                        .any(|&i| cb.iter().any(|&j| linked(nodes[i], nodes[j])));
-                    if clash || !any_link {
-                        continue;
-                    }
-                    let w: f32 = ca
-                        .iter()
-                        .flat_map(|&i| cb.iter().map(move |&j| (i, j)))
-                        .map(|(i, j)| pw(nodes[i], nodes[j]))
-                        .sum();
-                    if w < 0.0 {
-                        continue;
-                    }
-                    let names = (ca[0].min(cb[0]), ca[0].max(cb[0]));
-                    if pick.is_none_or(|(pw, _, _, pn)| w > pw || (w == pw && names < pn)) {
-                        pick = Some((w, a, b, names));
-                    }
-                }
-            }
-            let Some((_, a, b, _)) = pick else { break };
-            let moved = clusters.remove(b);
-            clusters[a].extend(moved);
-            clusters[a].sort_unstable();
-        }
-        clusters.sort_unstable_by_key(|c| c[0]);
-        clusters
-            .into_iter()
-            .map(|c| c.into_iter().map(|i| nodes[i]).collect())
-            .collect()
-    }
-
-    /// Camera pairs from grid scores (multiples of 1/64, so with the dyadic parameters of
-    /// [`grid_cfg`] every partial sum is exact and both implementations see equal ties).
-    fn grid_pairs(sizes: &[usize], raw: &[u8]) -> Vec<ViewPair> {
-        let mut k = 0;
-        let mut pairs = Vec::new();
-        for a in 0..sizes.len() {
-            for b in a + 1..sizes.len() {
-                if sizes[a] == 0 || sizes[b] == 0 {
-                    continue;
-                }
-                let s = Array2::from_shape_fn((sizes[a], sizes[b]), |_| {
-                    k += 1;
-                    raw[k % raw.len()] as f32 / 64.0
-                });
-                pairs.push(pair(a, b, s, 0.0));
-            }
-        }
-        pairs
-    }
-
-    fn grid_cfg(t: u8) -> IdentityConfig {
-        IdentityConfig {
-            calibration: None,
-            threshold: t as f32 / 64.0,
-            support_bonus: 0.125,
-            dissent_penalty: 0.0625,
-            conflict_penalty: 0.3125,
-        }
-    }
-
-    /// Persons with a position; camera `c` sees each person with probability ~0.8 and
-    /// scores boxes by closeness: a consistent scene (every pair's Hungarian is right).
-    fn consistent_scene(
-        cams: usize,
-        people: &[u8],
-        seen: &[bool],
-    ) -> (Vec<usize>, Vec<ViewPair>, Vec<Vec<usize>>) {
-        // views[c] = person index of each box of camera c.
-        let views: Vec<Vec<usize>> = (0..cams)
-            .map(|c| {
-                (0..people.len())
-                    .filter(|&p| seen[(c * people.len() + p) % seen.len()])
-                    .collect()
-            })
-            .collect();
-        let sizes: Vec<usize> = views.iter().map(Vec::len).collect();
-        let mut pairs = Vec::new();
-        for a in 0..cams {
-            for b in a + 1..cams {
-                if sizes[a] == 0 || sizes[b] == 0 {
-                    continue;
-                }
-                let s = Array2::from_shape_fn((sizes[a], sizes[b]), |(i, j)| {
-                    let (p, q) = (views[a][i], views[b][j]);
-                    if p == q {
-                        0.9
-                    } else {
-                        // Below 0.3: two agreeing third cameras add 2 × 0.1 of support,
-                        // so a wrong pair at 0.3 would tie the 0.5 threshold exactly
-                        // (a float coin toss, seen with one box per camera).
-                        let d = (people[p] as f32 - people[q] as f32).abs() / 255.0;
-                        (0.25 * d).min(0.25)
-                    }
-                });
-                pairs.push(pair(a, b, s, 0.0));
-            }
-        }
-        (sizes, pairs, views)
-    }
-
-    proptest! {
-        #[test]
-        fn heap_clustering_equals_naive(
-            sizes in proptest::collection::vec(0usize..6, 2..6),
-            raw in proptest::collection::vec(0u8..=64, 400),
-            t in 0u8..=64,
-        ) {
-            let pairs = grid_pairs(&sizes, &raw);
-            let c = grid_cfg(t);
-            let got = build_identities(&sizes, &pairs, &c);
-            prop_assert_eq!(members(&got), naive(&sizes, &pairs, &c));
-            // Camera-exclusive, every box once, deterministic.
-            let mut all: Vec<(usize, usize)> = Vec::new();
-            for ident in &got {
-                let mut cams: Vec<usize> = ident.members.iter().map(|m| m.0).collect();
-                cams.dedup();
-                prop_assert_eq!(cams.len(), ident.members.len());
-                prop_assert!((0.0..=1.0).contains(&ident.confidence));
-                all.extend(&ident.members);
-            }
-            all.sort_unstable();
-            prop_assert_eq!(all.len(), sizes.iter().sum::<usize>());
-            all.dedup();
-            prop_assert_eq!(all.len(), sizes.iter().sum::<usize>());
-            prop_assert_eq!(build_identities(&sizes, &pairs, &c), got);
-        }
-
-        #[test]
-        fn two_cameras_equal_pairwise(
-            n in 0usize..8, m in 0usize..8,
-            raw in proptest::collection::vec(0u8..=64, 64),
-            t in 0u8..=64,
-        ) {
-            let pairs = grid_pairs(&[n, m], &raw);
-            let c = grid_cfg(t);
-            let ids = build_identities(&[n, m], &pairs, &c);
-            for (p, d) in pairs.iter().zip(pairs_from_identities(&ids, &pairs)) {
-                let kept: Vec<_> = c.kept(&p.matching).iter().map(|x| (x.a, x.b)).collect();
-                let got: Vec<_> = d.matching.matches.iter().map(|x| (x.a, x.b)).collect();
-                prop_assert_eq!(got, kept);
-            }
-        }
-
-        #[test]
-        fn consistent_matches_unchanged_and_one_swap_repaired(
-            people in proptest::collection::vec(0u8..=255, 2..7),
-            seen in proptest::collection::vec(proptest::bool::weighted(0.8), 1..40),
-            swap in 0usize..100,
-        ) {
-            let cams = 4;
-            let (sizes, mut pairs, views) = consistent_scene(cams, &people, &seen);
-            let c = IdentityConfig::new(None, 0.5);
-            // Truth: one identity per person seen by any camera.
-            let mut truth: Vec<Vec<(usize, usize)>> = (0..people.len())
-                .map(|p| (0..cams).filter_map(|cam| views[cam].iter().position(|&q| q == p).map(|i| (cam, i))).collect::<Vec<_>>())
-                .filter(|m: &Vec<_>| !m.is_empty())
-                .collect();
-            truth.sort();
-            let mut got = members(&build_identities(&sizes, &pairs, &c));
-            got.sort();
-            prop_assert_eq!(&got, &truth);
-            // Corrupt one pair: swap the partners of two of its matches (both stay kept).
-            if pairs.is_empty() { return Ok(()); }
-            let k = swap % pairs.len();
-            let asg = &mut pairs[k].matching.assignment;
-            if asg.len() < 2 { return Ok(()); }
-            let (x, y) = (swap % asg.len(), (swap / 7 + 1 + swap % asg.len()) % asg.len());
-            if x == y { return Ok(()); }
-            let (bx, by) = (asg[x].b, asg[y].b);
-            asg[x].b = by;
-            asg[y].b = bx;
-            let (pa, pb) = (pairs[k].cam_a, pairs[k].cam_b);
-            // Repairable when both swapped persons are seen by the two other cameras.
-            let persons = [views[pa][pairs[k].matching.assignment[x].a], views[pa][pairs[k].matching.assignment[y].a]];
-            let others: Vec<usize> = (0..cams).filter(|&q| q != pa && q != pb).collect();
-            let witnessed = persons.iter().all(|p| others.iter().all(|&q| views[q].contains(p)));
-            if witnessed {
-                let mut got = members(&build_identities(&sizes, &pairs, &c));
-                got.sort();
-                prop_assert_eq!(got, truth);
-            }
-        }
-    }
-}
+mod tests;
