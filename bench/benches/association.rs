@@ -2,16 +2,18 @@
 //! embeddings): the 21 pairwise matchings, the identity step, the whole `associate_frame`, and
 //! the service's path (`frame_identities`).
 use std::hint::black_box;
+use std::sync::Arc;
 
 use criterion::measurement::{Measurement, ValueFormatter, WallTime};
 use criterion::{BatchSize, Criterion, Throughput, criterion_group, criterion_main};
 use crossview_core::association::{
     AssociationConfig, Mode, ViewPair, associate_frame, frame_identities,
 };
+use crossview_core::calibration::Calibration;
 use crossview_core::distances::{
     all_pairs_distances, euclidean_distances_with_norms, row_sq_norms,
 };
-use crossview_core::identity::build_identities;
+use crossview_core::identity::{IdentityConfig, IdentityMethod, build_identities};
 use crossview_core::matching::{hungarian, match_from_distances};
 use crossview_core::tracking::{Tracker, TrackerConfig};
 use crossview_core::{Detection, Frame, FrameEmbeddings};
@@ -134,6 +136,29 @@ impl Measurement for OnCpu {
     }
 }
 
+/// A 32-knot table falling from 1 to 0 over twice the frame's largest assigned distance: the
+/// shape and size of a fitted calibration (what the identities' cost depends on).
+fn calibration(pairs: &[ViewPair]) -> Calibration {
+    let far = pairs
+        .iter()
+        .flat_map(|p| &p.matching.assignment)
+        .map(|a| a.distance)
+        .fold(0f32, f32::max)
+        * 2.0
+        + 1e-3;
+    let knots = 32;
+    Calibration {
+        distances: (0..knots)
+            .map(|k| far * k as f32 / (knots - 1) as f32)
+            .collect(),
+        probabilities: (0..knots)
+            .map(|k| 1.0 - k as f32 / (knots - 1) as f32)
+            .collect(),
+        false_share: 0.5,
+        samples: [1000, 1000],
+    }
+}
+
 fn bench_wall(c: &mut Criterion<WallTime>) {
     bench(c, "wildtrack_frame_7x35x768", 768);
     bench(c, "wildtrack_frame_7x35x64", 64);
@@ -216,14 +241,36 @@ fn bench<M: Measurement>(c: &mut Criterion<M>, group: &str, dim: usize) {
     g.bench_function("identities", |b| {
         b.iter(|| black_box(build_identities(&sizes, black_box(&pairs), &cfg.identity)))
     });
-    for mode in [Mode::Pairwise, Mode::Identities] {
+    // What a served model does: the identities read the calibrated P of the entries.
+    let calibrated = AssociationConfig {
+        identity: IdentityConfig::new(Some(Arc::new(calibration(&pairs))), 0.2),
+        ..cfg.clone()
+    };
+    let baseline = IdentityConfig::with_method(None, 0.4, IdentityMethod::UnionFind);
+    g.bench_function("identities_union_find", |b| {
+        b.iter(|| black_box(build_identities(&sizes, black_box(&pairs), &baseline)))
+    });
+    g.bench_function("identities_calibrated", |b| {
+        b.iter(|| {
+            black_box(build_identities(
+                &sizes,
+                black_box(&pairs),
+                &calibrated.identity,
+            ))
+        })
+    });
+    for (mode, cfg, name) in [
+        (Mode::Pairwise, &cfg, "pairwise"),
+        (Mode::Identities, &cfg, "identities"),
+        (Mode::Identities, &calibrated, "identities_calibrated"),
+    ] {
         let cfg = AssociationConfig {
             mode,
             ..cfg.clone()
         };
         // A fresh copy of the embeddings right before each call: in cache, as the encoder's
         // output is in the server (a batch of copies made up front would be measured cold).
-        g.bench_function(format!("associate_frame_{mode}"), |b| {
+        g.bench_function(format!("associate_frame_{name}"), |b| {
             b.iter_batched(
                 || embs.clone(),
                 |e| black_box(associate_frame(&frame, e, &cfg)),
@@ -233,6 +280,9 @@ fn bench<M: Measurement>(c: &mut Criterion<M>, group: &str, dim: usize) {
     }
     g.bench_function("frame_identities", |b| {
         b.iter(|| black_box(frame_identities(&frame, black_box(&embs), &cfg)))
+    });
+    g.bench_function("frame_identities_calibrated", |b| {
+        b.iter(|| black_box(frame_identities(&frame, black_box(&embs), &calibrated)))
     });
     // Tracking's share of a frame: one tracker update with the frame's identities against
     // the tracks of the frames before (the same frame again: everyone continues a track).

@@ -72,6 +72,19 @@ impl PairMatching {
     }
 }
 
+/// SPEC §3's kept matches: the Hungarian pairs with `S ≥ threshold`, in assignment order.
+pub(crate) fn kept_matches(assignment: &[Assigned], threshold: f32) -> Vec<Match> {
+    assignment
+        .iter()
+        .filter(|p| p.score >= threshold)
+        .map(|p| Match {
+            a: p.a,
+            b: p.b,
+            score: p.score,
+        })
+        .collect()
+}
+
 /// Minimum-cost one-to-one assignment: `min(n, m)` pairs `(row, col)`, sorted by row
 /// ([`crate::lsa::assign`], on this thread's reusable solver). An empty side gives
 /// no pairs. Non-finite entries never hang or panic: NaN and `+inf` are treated as worse
@@ -159,15 +172,7 @@ pub fn match_from_distances(
         .collect();
     // S = 1 - D, in place.
     dg.mapv_inplace(|v| 1.0 - v);
-    let matches = assignment
-        .iter()
-        .filter(|p| p.score >= threshold)
-        .map(|p| Match {
-            a: p.a,
-            b: p.b,
-            score: p.score,
-        })
-        .collect();
+    let matches = kept_matches(&assignment, threshold);
     PairMatching {
         scores: dg,
         assignment,

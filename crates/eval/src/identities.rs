@@ -71,6 +71,18 @@ impl IdentityStats {
         }
     }
 
+    /// Whether precision rises with confidence: every non-empty decile's precision is at
+    /// least the next lower non-empty decile's minus `tolerance` (in percentage points).
+    pub fn monotone(&self, tolerance: f64) -> bool {
+        let precisions: Vec<f64> = self
+            .deciles
+            .iter()
+            .filter(|d| d.identities > 0)
+            .map(|d| 100.0 * d.correct as f64 / d.identities as f64)
+            .collect();
+        precisions.windows(2).all(|w| w[1] >= w[0] - tolerance)
+    }
+
     /// The text block `crossview eval` prints under the table.
     pub fn format(&self) -> String {
         let pct = |a: usize, b: usize| {
@@ -164,5 +176,26 @@ mod tests {
         both.add_frame(&[ident(0.35, vec![(0, 1)]), ident(0.3, vec![(1, 0)])], &ids);
         a.merge(&b);
         assert_eq!(a, both);
+    }
+
+    #[test]
+    fn monotone_within_a_tolerance_and_empty_deciles_skipped() {
+        let mut s = IdentityStats::default();
+        s.deciles[2] = Decile {
+            identities: 10,
+            correct: 5,
+        };
+        s.deciles[7] = Decile {
+            identities: 100,
+            correct: 48,
+        };
+        assert!(s.monotone(3.0), "48 % after 50 %: within 3 points");
+        assert!(!s.monotone(1.0));
+        s.deciles[9] = Decile {
+            identities: 10,
+            correct: 4,
+        };
+        assert!(!s.monotone(3.0), "40 % after 48 %");
+        assert!(IdentityStats::default().monotone(0.0));
     }
 }

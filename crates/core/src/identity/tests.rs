@@ -1,6 +1,6 @@
 //! The identity step's guarantees.
 use super::*;
-use crate::matching::hungarian;
+use crate::matching::{hungarian, kept_matches};
 use ndarray::{Array2, array};
 use proptest::prelude::*;
 
@@ -16,15 +16,7 @@ fn pair(cam_a: usize, cam_b: usize, scores: Array2<f32>, threshold: f32) -> View
             distance: 1.0 - scores[(a, b)],
         })
         .collect();
-    let matches = assignment
-        .iter()
-        .filter(|p| p.score >= threshold)
-        .map(|p| Match {
-            a: p.a,
-            b: p.b,
-            score: p.score,
-        })
-        .collect();
+    let matches = kept_matches(&assignment, threshold);
     ViewPair {
         cam_a,
         cam_b,

@@ -1,0 +1,249 @@
+#!/usr/bin/env python3
+"""Prototypes of the identity methods compared in BENCHMARKS.md ("Identities", methods
+compared), on the dumps of `identity_dump` (per frame: ids and every camera pair's raw
+distances; the model's calibration): SPEC §3 pairwise, the union-find baseline, correlation
+clustering (greedy additive edge contraction, camera-exclusive) on several affinities, and its
+average-linkage variant. Scores identity-derived ACC / IPAA-100 exactly as `crossview eval`
+(the pairwise and union-find rows reproduce the Rust figures to the last digit).
+
+  cargo build --release -p crossview-bench --bin identity_dump
+  target/release/identity_dump models/wildtrack.onnx train.jsonl train_dump.jsonl
+  python3 bench/identity_prototypes.py train_dump.jsonl METHOD:T:B ...
+
+METHOD: uf (union-find on S), gaec (max(S,P) links + support, min(0, P - t) elsewhere: what
+ships), avg (the same weights, average linkage), dense (S - t on every entry), gated-s
+(S - t on Hungarian pairs, min(0, S - t) elsewhere). Needs numpy and scipy
+(bench/python_env.sh).
+"""
+import sys
+import json, numpy as np
+from scipy.optimize import linear_sum_assignment
+
+def load(path):
+    with open(path) as f:
+        head = json.loads(f.readline())
+        cal = head['calibration']
+        frames = []
+        for line in f:
+            r = json.loads(line)
+            ids = r['ids']
+            sizes = [len(x) for x in ids]
+            pairs = {}
+            for p in r['pairs']:
+                d = np.array(p['d'], dtype=np.float64).reshape(p['shape'])
+                s = 1.0 - d / (d.max() + 1e-6)
+                rows, cols = linear_sum_assignment(d)
+                pairs[(p['a'], p['b'])] = dict(d=d, s=s, hung=list(zip(rows.tolist(), cols.tolist())))
+            frames.append(dict(frame=r['frame'], ids=ids, sizes=sizes, pairs=pairs))
+    return cal, frames
+
+def prob(cal, d):
+    xs, ps = np.array(cal['distances']), np.array(cal['probabilities'])
+    return np.interp(d, xs, ps)
+
+def add_prob(cal, frames):
+    for fr in frames:
+        for p in fr['pairs'].values():
+            p['p'] = prob(cal, p['d'])
+
+def subset(frames, cams):
+    out = []
+    cams = set(cams)
+    for fr in frames:
+        ids = [x if c in cams else [] for c, x in enumerate(fr['ids'])]
+        pairs = {k: v for k, v in fr['pairs'].items() if k[0] in cams and k[1] in cams}
+        out.append(dict(frame=fr['frame'], ids=ids, sizes=[len(x) for x in ids], pairs=pairs))
+    return out
+
+def score(frames, idents_list):
+    """idents_list: per frame list of (conf, [(cam, i), ...]). Returns acc, ipaa100, deciles, ident precision."""
+    tn_c = 0; union = 0; ok100 = 0; npairs = 0
+    dec = np.zeros((10, 2))
+    for fr, idents in zip(frames, idents_list):
+        ids = fr['ids']
+        where = {}
+        for k, (conf, mem) in enumerate(idents):
+            for m in mem:
+                where[m] = k
+        for (a, b), p in fr['pairs'].items():
+            la, lb = ids[a], ids[b]
+            L1, L2 = set(la), set(lb)
+            un = len(L1 | L2)
+            ma = [False]*len(la); mb = [False]*len(lb)
+            corr = 0
+            # identity-derived matches
+            for i in range(len(la)):
+                k = where.get((a, i))
+                for (c, j) in idents[k][1]:
+                    if c == b:
+                        ma[i] = True; mb[j] = True
+                        corr += la[i] == lb[j]
+            tn = sum(1 for i in range(len(la)) if not ma[i] and la[i] not in L2) + \
+                 sum(1 for j in range(len(lb)) if not mb[j] and lb[j] not in L1)
+            good = tn + corr
+            tn_c += good; union += un; ok100 += good >= un; npairs += 1
+        cnt = {}
+        for c, x in enumerate(ids):
+            for g in x: cnt[g] = cnt.get(g, 0) + 1
+        for conf, mem in idents:
+            g = ids[mem[0][0]][mem[0][1]]
+            right = all(ids[c][i] == g for c, i in mem) and cnt[g] == len(mem)
+            k = min(int(max(0.0, min(1.0, conf)) * 10), 9)
+            dec[k, 0] += 1; dec[k, 1] += right
+    return 100*tn_c/union, 100*ok100/npairs, dec
+
+def monotone(dec, tol=3.0):
+    prec = [100*c/n if n else None for n, c in dec]
+    last = None; ok = True
+    for p in prec:
+        if p is None: continue
+        if last is not None and p < last - tol: ok = False
+        last = p if last is None else max(last, p) if False else p
+    return ok
+
+def fmt_dec(dec):
+    return ' '.join(f"{k/10:.1f}:{100*c/n:.0f}%/{int(n)}" for k, (n, c) in enumerate(dec) if n)
+
+
+
+def boxes(fr):
+    nodes = [(c, i) for c, k in enumerate(fr['sizes']) for i in range(k)]
+    idx = {m: n for n, m in enumerate(nodes)}
+    return nodes, idx
+
+def dense(fr, key):
+    nodes, idx = boxes(fr)
+    n = len(nodes)
+    A = np.full((n, n), np.nan)
+    H = np.zeros((n, n), bool)
+    for (a, b), p in fr['pairs'].items():
+        ia = [idx[(a, i)] for i in range(fr['sizes'][a])]
+        ib = [idx[(b, j)] for j in range(fr['sizes'][b])]
+        M = p[key]
+        A[np.ix_(ia, ib)] = M; A[np.ix_(ib, ia)] = M.T
+        for (i, j) in p['hung']:
+            H[ia[i], ib[j]] = H[ib[j], ia[i]] = True
+    return nodes, A, H
+
+def union_find(fr, t, bonus, key='s'):
+    nodes, A, H = dense(fr, key)
+    n = len(nodes)
+    cam = np.array([c for c, _ in nodes])
+    ncam = len(fr['sizes'])
+    # Hungarian partner per camera (kept only)
+    part = -np.ones((n, ncam), int)
+    for u in range(n):
+        for v in np.nonzero(H[u])[0]:
+            if A[u, v] >= t: part[u, cam[v]] = v
+    edges = []
+    for u in range(n):
+        for v in np.nonzero(H[u])[0]:
+            if v > u and A[u, v] >= t:
+                agree = sum(1 for c in range(ncam) if c != cam[u] and c != cam[v] and part[u, c] >= 0 and part[u, c] == part[v, c])
+                edges.append((A[u, v] + bonus * agree, u, v))
+    edges.sort(key=lambda e: (-e[0], e[1], e[2]))
+    root = list(range(n)); cams = [{cam[u]} for u in range(n)]
+    def find(x):
+        while root[x] != x:
+            root[x] = root[root[x]]; x = root[x]
+        return x
+    for w, u, v in edges:
+        r, s = find(u), find(v)
+        if r == s or cams[r] & cams[s]: continue
+        root[s] = r; cams[r] |= cams[s]
+    cl = {}
+    for u in range(n): cl.setdefault(find(u), []).append(u)
+    return nodes, A, H, list(cl.values())
+
+def gaec(fr, W, nodes):
+    """Greedy additive edge contraction with camera exclusivity on weight matrix W (nan = same camera)."""
+    n = len(nodes)
+    if n == 0: return []
+    cam = np.array([c for c, _ in nodes])
+    Wc = np.where(np.isnan(W), 0.0, W).copy()
+    conf = cam[:, None] == cam[None, :]
+    alive = np.ones(n, bool)
+    members = [[u] for u in range(n)]
+    while True:
+        M = np.where(conf | ~alive[None, :] | ~alive[:, None], -np.inf, Wc)
+        np.fill_diagonal(M, -np.inf)
+        k = np.argmax(M)
+        r, s = divmod(k, n)
+        if not M[r, s] > 0: break
+        if s < r: r, s = s, r
+        Wc[r] += Wc[s]; Wc[:, r] += Wc[:, s]
+        conf[r] |= conf[s]; conf[:, r] |= conf[:, s]
+        alive[s] = False
+        members[r] += members[s]
+    return [sorted(members[u]) for u in range(n) if alive[u]]
+
+def as_idents(nodes, clusters, confs):
+    out = []
+    for cl, c in sorted(zip(clusters, confs), key=lambda x: x[0][0]):
+        out.append((c, [nodes[u] for u in cl]))
+    return out
+
+
+def weights(fr, kind, t, b):
+    nodes, A, H = dense(fr, 's')
+    _, P, _ = dense(fr, 'p')
+    n, ncam = len(nodes), len(fr['sizes'])
+    cam = np.array([c for c, _ in nodes], dtype=int)
+    if kind == 'dense':
+        return nodes, A - t
+    if kind == 'gated-s':
+        return nodes, np.where(H, A - t, np.minimum(0, A - t))
+    part = -np.ones((n, ncam), int)
+    us, vs = np.nonzero(H)
+    part[us, cam[vs]] = vs
+    W = np.where(H, np.maximum(A, P) - t, np.minimum(0, P - t))
+    for u, v in zip(us, vs):
+        W[u, v] += b * np.sum((part[u] >= 0) & (part[u] == part[v]))
+    return nodes, W
+
+
+def gaec_avg(W, nodes):
+    """Average linkage: merge the camera-disjoint pair with the largest mean weight while > 0."""
+    n = len(nodes)
+    if n == 0:
+        return []
+    cam = np.array([c for c, _ in nodes], dtype=int)
+    Wc = np.where(np.isnan(W), 0.0, W).copy()
+    size = np.ones(n)
+    conf = cam[:, None] == cam[None, :]
+    alive = np.ones(n, bool)
+    members = [[u] for u in range(n)]
+    while True:
+        M = np.where(conf | ~alive[None, :] | ~alive[:, None], -np.inf,
+                     Wc / (size[:, None] * size[None, :]))
+        np.fill_diagonal(M, -np.inf)
+        r, s = divmod(int(np.argmax(M)), n)
+        if not M[r, s] > 0:
+            break
+        r, s = min(r, s), max(r, s)
+        Wc[r] += Wc[s]; Wc[:, r] += Wc[:, s]; size[r] += size[s]
+        conf[r] |= conf[s]; conf[:, r] |= conf[:, s]
+        alive[s] = False; members[r] += members[s]
+    return [sorted(members[u]) for u in range(n) if alive[u]]
+
+
+def run(frames, method, t, b):
+    res = []
+    for fr in frames:
+        if method == 'uf':
+            nodes, _, _, cl = union_find(fr, t, b, 's')
+        else:
+            nodes, W = weights(fr, method, t, b)
+            cl = gaec_avg(W, nodes) if method == 'avg' else gaec(fr, W, nodes)
+        res.append(as_idents(nodes, cl, [0.5] * len(cl)))
+    return score(frames, res)
+
+
+if __name__ == '__main__':
+    cal, frames = load(sys.argv[1])
+    if cal:
+        add_prob(cal, frames)
+    for arg in sys.argv[2:]:
+        m, t, b = arg.split(':')
+        acc, ipaa, _ = run(frames, m, float(t), float(b))
+        print(f"{m} t={t} b={b}: ACC {acc:.2f} IPAA-100 {ipaa:.2f}", flush=True)
