@@ -57,6 +57,14 @@ pub struct Identity {
     pub members: Vec<(usize, usize)>,
 }
 
+impl Identity {
+    /// Cross-view links of this identity (pairs of members), `k·(k−1)/2` for `k` members.
+    pub fn links(&self) -> usize {
+        let k = self.members.len();
+        k * k.saturating_sub(1) / 2
+    }
+}
+
 /// How a frame's boxes are grouped into identities.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum IdentityMethod {

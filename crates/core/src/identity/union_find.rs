@@ -31,7 +31,8 @@ pub(super) fn clusters(
             continue;
         }
         for p in &pair.matching.assignment {
-            if p.a >= view_sizes[ca] || p.b >= view_sizes[cb] || !(p.score >= threshold) {
+            let keep = p.score >= threshold; // NaN: not kept
+            if p.a >= view_sizes[ca] || p.b >= view_sizes[cb] || !keep {
                 continue;
             }
             let (u, v) = (offsets[ca] + p.a, offsets[cb] + p.b);
