@@ -38,6 +38,14 @@ pub struct PopulationOptions {
     /// Consecutive scorings averaged into the key that ranks the members (one scoring is
     /// noisy).
     pub window: usize,
+    /// The best this many finalists (by the key of their kept weights) are exported together
+    /// as one encoder ([`crossview_model::Ensemble`]); 1 = the winner alone.
+    #[serde(default = "one")]
+    pub ensemble: usize,
+}
+
+fn one() -> usize {
+    1
 }
 
 impl PopulationOptions {
@@ -51,6 +59,7 @@ impl PopulationOptions {
             halve_at: vec![0.25, 0.5],
             keep_at_least: threads,
             window: 3,
+            ensemble: 1,
         }
     }
 
@@ -62,6 +71,7 @@ impl PopulationOptions {
             halve_at: Vec::new(),
             keep_at_least: 1,
             window: 1,
+            ensemble: 1,
         }
     }
 }

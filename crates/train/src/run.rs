@@ -6,8 +6,8 @@ use std::path::PathBuf;
 
 use crossview_core::{CameraSpec, Error, Result};
 use crossview_data::recording::{Recording, read_recording, read_recordings};
-use crossview_model::export::{read_weights, write_onnx};
-use crossview_model::{EncoderWeights, ModelMetadata};
+use crossview_model::export::{read_weights, write_ensemble_onnx};
+use crossview_model::{EncoderWeights, Ensemble, ModelMetadata};
 
 use crate::TrainingSet;
 use crate::calibrate::calibrate;
@@ -60,6 +60,9 @@ pub struct RunOptions {
     /// **[ours]** How many members train side by side ([`PopulationOptions::single`]: one
     /// run).
     pub population: PopulationOptions,
+    /// **[ours]** Also write every finalist of a population as its own model file here
+    /// (`member-<i>.onnx`), to compare them or combine them differently later.
+    pub members_out: Option<PathBuf>,
 }
 
 /// What a run wrote, in words for the user.
@@ -132,30 +135,112 @@ pub fn run(opts: RunOptions) -> Result<RunReport> {
                 "why": "best label-free key of its kept weights among the finalists",
                 "options": opts.population,
                 "members": p.members,
+                "ensemble": p.finalists.iter().take(opts.population.ensemble.max(1))
+                    .map(|(i, _, key)| serde_json::json!({"member": i, "key": key}))
+                    .collect::<Vec<_>>(),
             })
             .to_string(),
         );
     }
-    // Label-free confidence: synchronized vs time-shifted pairs of the training frames.
-    let mut exported = outcome.weights.clone();
-    match calibrate(&mut exported, &set, cfg.seed) {
-        Ok(cal) => {
-            meta.calibration = Some(std::sync::Arc::new(cal));
-            meta.match_threshold = Some(opts.match_threshold);
-        }
-        Err(e) => tracing::warn!(error = %e, "no calibration stored: identities will use S"),
+    if let (Some(p), Some(dir)) = (&population, &opts.members_out) {
+        write_members(dir, p, &meta, &set, &opts)?;
     }
-    write_onnx(&opts.out, &outcome.weights, &meta)?;
+    let ensemble = exported_ensemble(&outcome, population.as_ref(), opts.population.ensemble)?;
+    let threshold = meta.threshold;
+    export(&opts.out, &ensemble, meta, &set, &opts)?;
     let curve = write_curve_and_history(&opts, &outcome, &data_name)?;
-    let mut summary = summary(&outcome, meta.threshold);
+    let mut summary = summary(&outcome, threshold);
     if let Some(p) = &population {
         summary.push_str(&format!("; population: {}", p.summary()));
+        let m = ensemble.members().len();
+        if m > 1 {
+            let chosen: Vec<String> = p.finalists[..m].iter().map(|f| f.0.to_string()).collect();
+            summary.push_str(&format!(
+                "; exported members {} together (width {})",
+                chosen.join(", "),
+                ensemble.width()
+            ));
+        }
     }
     Ok(RunReport {
         summary,
         data: read_summary,
         curve,
     })
+}
+
+/// What is exported: the best `size` finalists of a population as one encoder, or the
+/// outcome's weights alone.
+fn exported_ensemble(
+    outcome: &TrainOutcome,
+    population: Option<&PopulationOutcome>,
+    size: usize,
+) -> Result<Ensemble> {
+    match population {
+        Some(p) if size > 1 && p.finalists.len() > 1 => Ensemble::new(
+            p.finalists
+                .iter()
+                .take(size)
+                .map(|(_, w, _)| w.clone())
+                .collect(),
+        ),
+        _ => Ok(Ensemble::single(outcome.weights.clone())),
+    }
+}
+
+/// Fits the label-free confidence (synchronized vs time-shifted pairs of the training frames)
+/// into `meta` and writes the model file.
+fn export(
+    out: &std::path::Path,
+    ensemble: &Ensemble,
+    mut meta: ModelMetadata,
+    set: &TrainingSet,
+    opts: &RunOptions,
+) -> Result<()> {
+    let mut encoder = ensemble.clone();
+    match calibrate(&mut encoder, set, opts.config.seed) {
+        Ok(cal) => {
+            meta.calibration = Some(std::sync::Arc::new(cal));
+            meta.match_threshold = Some(opts.match_threshold);
+        }
+        Err(e) => tracing::warn!(error = %e, "no calibration stored: identities will use S"),
+    }
+    write_ensemble_onnx(out, ensemble, &meta)
+}
+
+/// Writes every finalist of `population` as `dir/member-<i>.onnx`, each with its own
+/// calibration and `crossview.member` (index, seed, key) in its metadata.
+fn write_members(
+    dir: &std::path::Path,
+    population: &PopulationOutcome,
+    meta: &ModelMetadata,
+    set: &TrainingSet,
+    opts: &RunOptions,
+) -> Result<()> {
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    for (i, weights, key) in &population.finalists {
+        let mut m = meta.clone();
+        // What chose the winner's epoch does not describe this member.
+        for key in [
+            "crossview.epochs",
+            "crossview.selection",
+            "crossview.validation",
+        ] {
+            m.extra.remove(key);
+        }
+        m.extra.insert(
+            "crossview.member".into(),
+            serde_json::json!({
+                "member": i,
+                "seed": population.members[*i].seed,
+                "key": key,
+            })
+            .to_string(),
+        );
+        let single = Ensemble::single(weights.clone());
+        export(&dir.join(format!("member-{i}.onnx")), &single, m, set, opts)?;
+    }
+    Ok(())
 }
 
 /// Trains a population (when `opts.population` asks for one and something can rank its
