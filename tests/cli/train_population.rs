@@ -135,3 +135,56 @@ fn bad_halving_points_are_refused() {
         assert!(err.contains("--halve-at"), "{bad}: {err}");
     }
 }
+
+#[test]
+fn an_ensemble_initialises_the_members_of_the_next_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("train.jsonl");
+    write_recording(&data, &recording(3, 40, false)).unwrap();
+    let first = dir.path().join("e.onnx");
+    let pop = ["--population", "2", "--threads", "2", "--halve-at", "none"];
+    train_ok(
+        &data,
+        &first,
+        &[&pop[..], &["--ensemble", "2"], &SMALL[..]].concat(),
+    );
+    let (start, _) = read_ensemble(&first).unwrap();
+    // With a learning rate of 1e-30 and no moving average nothing moves: each member ends
+    // where the ensemble's member it started from was.
+    let again = dir.path().join("again.onnx");
+    let frozen = [
+        "--ensemble",
+        "2",
+        "--lr",
+        "1e-30",
+        "--ema-decay",
+        "0",
+        "--init",
+        first.to_str().unwrap(),
+    ];
+    train_ok(&data, &again, &[&pop[..], &frozen[..], &SMALL[..]].concat());
+    let (end, _) = read_ensemble(&again).unwrap();
+    assert_eq!(end.members().len(), 2);
+    for m in end.members() {
+        assert!(
+            start.members().contains(m),
+            "a member did not start from the ensemble"
+        );
+    }
+    assert_ne!(end.members()[0], end.members()[1]);
+    // A single run starts from the ensemble's first member.
+    let single = dir.path().join("single.onnx");
+    let one = [
+        "--population",
+        "1",
+        "--lr",
+        "1e-30",
+        "--ema-decay",
+        "0",
+        "--init",
+        first.to_str().unwrap(),
+    ];
+    train_ok(&data, &single, &[&one[..], &SMALL[..]].concat());
+    let (w, _) = read_weights(&single).unwrap();
+    assert_eq!(&w, &start.members()[0]);
+}

@@ -22,7 +22,7 @@ use crate::member::{Member, mix};
 use crate::state::{CheckpointOptions, EpochRecord, Scoring, Select, TrainOutcome, ValScores};
 use crate::trainer::{improves, score_label_free};
 use crossview_core::{Error, Result};
-use crossview_model::EncoderWeights;
+use crossview_model::{EncoderWeights, Ensemble};
 
 /// How a population is run.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -137,11 +137,12 @@ pub fn member_seed(seed: u64, i: usize) -> u64 {
     }
 }
 
-/// Trains a population of `opts.size` members on `set` (see the module docs).
+/// Trains a population of `opts.size` members on `set` (see the module docs). With `init`
+/// (an exported encoder or ensemble), member `i` starts from its member `i mod M`.
 pub fn train_population(
     set: &TrainingSet,
     cfg: &TrainConfig,
-    init: Option<&EncoderWeights>,
+    init: Option<&Ensemble>,
     scoring: Scoring<'_>,
     ckpt: &CheckpointOptions,
     progress: bool,
@@ -156,7 +157,10 @@ pub fn train_population(
                 Some(d) if ckpt.resume && crate::checkpoint::exists(&d) => {
                     Member::resume(set, &c, &d)
                 }
-                _ => Member::new(set, &c, init),
+                _ => {
+                    let start = init.map(|e| &e.members()[i % e.members().len()]);
+                    Member::new(set, &c, start)
+                }
             }
         })
         .collect::<Result<Vec<_>>>()?;

@@ -6,8 +6,8 @@ use std::path::PathBuf;
 
 use crossview_core::{CameraSpec, Error, Result};
 use crossview_data::recording::{Recording, read_recording, read_recordings};
-use crossview_model::export::{read_weights, write_ensemble_onnx};
-use crossview_model::{EncoderWeights, Ensemble, ModelMetadata};
+use crossview_model::export::{read_ensemble, write_ensemble_onnx};
+use crossview_model::{Ensemble, ModelMetadata};
 
 use crate::TrainingSet;
 use crate::calibrate::calibrate;
@@ -248,7 +248,7 @@ fn write_members(
 fn train_members(
     set: &TrainingSet,
     cfg: &TrainConfig,
-    init: Option<&EncoderWeights>,
+    init: Option<&Ensemble>,
     scoring: Scoring<'_>,
     opts: &RunOptions,
 ) -> Result<(TrainOutcome, Option<PopulationOutcome>)> {
@@ -271,6 +271,7 @@ fn train_members(
         )?;
         (p.outcome.clone(), Some(p))
     } else {
+        let init = init.map(|e| &e.members()[0]);
         let out = train_from(set, cfg, init, scoring, &opts.checkpoint, opts.progress)?;
         (out, None)
     };
@@ -327,16 +328,19 @@ fn read_training_set(opts: &RunOptions) -> Result<(Recording, TrainingSet, Strin
     Ok((rec, set, read_summary))
 }
 
-/// The `--init` model's encoder, when given; its shape overrides `cfg`'s.
+/// The `--init` model's encoder (or ensemble: member `i` of a population starts from its
+/// member `i mod M`, a single run from its first), when given; its (first member's) shape
+/// overrides `cfg`'s.
 fn initial_weights(
     opts: &RunOptions,
     cameras: &[CameraSpec],
     cfg: &mut TrainConfig,
-) -> Result<Option<EncoderWeights>> {
+) -> Result<Option<Ensemble>> {
     let Some(p) = &opts.init else {
         return Ok(None);
     };
-    let (w, m) = read_weights(p)?;
+    let (e, m) = read_ensemble(p)?;
+    let w = &e.members()[0];
     if m.cameras != cameras {
         return Err(Error::Training(format!(
             "{} was trained for other cameras than the training data",
@@ -347,7 +351,7 @@ fn initial_weights(
     cfg.camera_dim = w.config.camera_dim;
     cfg.width = w.config.width;
     cfg.blocks = w.config.blocks;
-    Ok(Some(w))
+    Ok(Some(e))
 }
 
 /// The labelled validator over `--val`, when given.
