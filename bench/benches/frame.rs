@@ -6,14 +6,16 @@
 //! Frames: the throughput issue's recording, `crossview simulate --preset wildtrack --people 95
 //! --seed 11 --clean` (7 cameras × ~35 boxes), first 40 frames, cycled; a random encoder
 //! (`crossview model init --width 64 --fourier 32 --camera-dim 32 --seed 3`, the demo
-//! model's architecture and the issue's ≈ 11 MFLOP per frame) at widths 64 and 768.
+//! model's architecture and the issue's ≈ 11 MFLOP per frame) at widths 64 and 768, and
+//! ensembles of 2 and 4 such width-64 encoders (`crossview train --ensemble`, width 128 / 256).
 use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use crossview_core::association::{embed_frame, frame_identities};
 use crossview_data::sim::{DetectorNoise, SimConfig, simulate};
+use crossview_model::export::ensemble_to_onnx_bytes;
 use crossview_model::{
-    EncoderConfig, EncoderOptions, EncoderWeights, ModelMetadata, OnnxEncoder, to_onnx_bytes,
+    EncoderConfig, EncoderOptions, EncoderWeights, Ensemble, ModelMetadata, OnnxEncoder,
 };
 
 fn bench_frame(c: &mut Criterion) {
@@ -37,16 +39,26 @@ fn bench_frame(c: &mut Criterion) {
         boxes as f64 / rec.frames.len() as f64
     );
     let mut g = c.benchmark_group("whole_frame_wildtrack_p95");
-    for width in [64usize, 768] {
+    for (label, width, members) in [
+        ("w64", 64usize, 1u64),
+        ("w768", 768, 1),
+        ("w64x2", 64, 2),
+        ("w64x4", 64, 4),
+    ] {
         let config = EncoderConfig {
             width,
             fourier_features: 32,
             camera_dim: 32,
             ..EncoderConfig::default()
         };
-        let weights = EncoderWeights::random(scene.cameras.len(), config, 3).unwrap();
+        let ensemble = Ensemble::new(
+            (0..members)
+                .map(|k| EncoderWeights::random(scene.cameras.len(), config, 3 + k).unwrap())
+                .collect(),
+        )
+        .unwrap();
         let meta = ModelMetadata::new(scene.cameras.clone());
-        let bytes = to_onnx_bytes(&weights, &meta).unwrap();
+        let bytes = ensemble_to_onnx_bytes(&ensemble, &meta).unwrap();
         let mut enc =
             OnnxEncoder::from_bytes_with("bench", &bytes, EncoderOptions { intra_threads: 1 })
                 .unwrap();
@@ -61,17 +73,17 @@ fn bench_frame(c: &mut Criterion) {
             k = (k + 1) % rec.frames.len();
             k
         };
-        g.bench_function(format!("w{width}/encoder_and_association"), |b| {
+        g.bench_function(format!("{label}/encoder_and_association"), |b| {
             b.iter(|| {
                 let f = &rec.frames[next()];
                 let e = embed_frame(&mut enc, scene, f).unwrap();
                 black_box(frame_identities(f, &e, &cfg))
             })
         });
-        g.bench_function(format!("w{width}/encoder_only"), |b| {
+        g.bench_function(format!("{label}/encoder_only"), |b| {
             b.iter(|| black_box(embed_frame(&mut enc, scene, &rec.frames[next()]).unwrap()))
         });
-        g.bench_function(format!("w{width}/association_only"), |b| {
+        g.bench_function(format!("{label}/association_only"), |b| {
             b.iter(|| {
                 let i = next();
                 black_box(frame_identities(&rec.frames[i], &embedded[i], &cfg))

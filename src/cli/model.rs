@@ -1,5 +1,6 @@
 //! `crossview model`: create a random encoder file for a scene (`init`), inspect a model
-//! file (`info`), and give an existing model its label-free match calibration (`calibrate`).
+//! file (`info`), give an existing model its label-free match calibration (`calibrate`), and
+//! join model files into one ensemble encoder (`combine`).
 use std::path::PathBuf;
 
 use clap::{Args, Subcommand};
@@ -7,7 +8,9 @@ use clap::{Args, Subcommand};
 use crossview_core::SceneSpec;
 use crossview_data::recording::RecordingReader;
 use crossview_model::metadata::KEY_SCENE;
-use crossview_model::{EncoderConfig, EncoderWeights, ModelMetadata, export, write_onnx};
+use crossview_model::{
+    EncoderConfig, EncoderWeights, Ensemble, ModelMetadata, export, write_ensemble_onnx, write_onnx,
+};
 use crossview_train::clean::BoxFilter;
 
 /// Model file tools.
@@ -28,6 +31,32 @@ pub enum ModelCommand {
     /// unlabelled recording (synchronized vs time-shifted frames) and store it in a copy of
     /// the model file.
     Calibrate(CalibrateArgs),
+    /// Join model files of the same cameras into one ensemble encoder: its embedding is
+    /// theirs concatenated (each scaled by 1/√M), so its distances are the RMS of theirs.
+    /// Calibrated on `--data` when given (else it carries no calibration).
+    Combine(CombineArgs),
+}
+
+/// Options of `crossview model combine`.
+#[derive(Debug, Args)]
+pub struct CombineArgs {
+    /// Model files (two or more; an ensemble file adds all its members). Thresholds and
+    /// alpha come from the first.
+    #[arg(required = true, num_args = 2..)]
+    pub models: Vec<PathBuf>,
+    /// Output model file.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Unlabelled recording of the models' cameras to fit the ensemble's label-free match
+    /// calibration on (e.g. the training recording).
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// Threshold on the calibrated confidence stored as `crossview.match_threshold`.
+    #[arg(long, default_value_t = 0.2)]
+    pub match_threshold: f32,
+    /// Seed of the calibration's time-shift draws.
+    #[arg(long, default_value_t = 0, env = "CROSSVIEW_SEED")]
+    pub seed: u64,
 }
 
 /// Options of `crossview model calibrate`.
@@ -96,19 +125,41 @@ pub fn run(args: ModelArgs) -> anyhow::Result<()> {
         ModelCommand::Init(a) => init(a),
         ModelCommand::Info(a) => info(a),
         ModelCommand::Calibrate(a) => calibrate(a),
+        ModelCommand::Combine(a) => combine(a),
     }
 }
 
-fn calibrate(a: CalibrateArgs) -> anyhow::Result<()> {
-    if !(0.0..=1.0).contains(&a.match_threshold) {
-        anyhow::bail!(
-            "--match-threshold must be within [0, 1], got {}",
-            a.match_threshold
-        );
+fn check_match_threshold(t: f32) -> anyhow::Result<()> {
+    if !(0.0..=1.0).contains(&t) {
+        anyhow::bail!("--match-threshold must be within [0, 1], got {t}");
     }
-    let (weights, mut meta) = export::read_weights(&a.model)?;
-    let recording = crossview_data::recording::read_recording(&a.data)?;
-    super::eval::check_scene(&recording.scene, &meta)?;
+    Ok(())
+}
+
+fn calibrate(a: CalibrateArgs) -> anyhow::Result<()> {
+    check_match_threshold(a.match_threshold)?;
+    let (ensemble, mut meta) = export::read_ensemble(&a.model)?;
+    fit_calibration(&ensemble, &mut meta, &a.data, a.match_threshold, a.seed)?;
+    meta.validate(&a.out.display().to_string())?;
+    write_ensemble_onnx(&a.out, &ensemble, &meta)?;
+    println!(
+        "wrote {} (crossview.match_threshold {})",
+        a.out.display(),
+        a.match_threshold
+    );
+    Ok(())
+}
+
+/// Fits `ensemble`'s label-free calibration on the recording `data` into `meta` and prints it.
+fn fit_calibration(
+    ensemble: &Ensemble,
+    meta: &mut ModelMetadata,
+    data: &PathBuf,
+    match_threshold: f32,
+    seed: u64,
+) -> anyhow::Result<()> {
+    let recording = crossview_data::recording::read_recording(data)?;
+    super::eval::check_scene(&recording.scene, meta)?;
     let mut set = crossview_train::TrainingSet::from_recording(&recording, 1)?;
     // The boxes the model was trained on: its own training filter, when it records one.
     let filter: BoxFilter = meta
@@ -117,11 +168,11 @@ fn calibrate(a: CalibrateArgs) -> anyhow::Result<()> {
         .and_then(|f| serde_json::from_str(f).ok())
         .unwrap_or_default();
     let stats = filter.apply(&mut set);
-    let mut encoder = weights.clone();
-    let cal = crossview_train::calibrate::calibrate(&mut encoder, &set, a.seed)?;
+    let mut encoder = ensemble.clone();
+    let cal = crossview_train::calibrate::calibrate(&mut encoder, &set, seed)?;
     println!(
         "calibrated on {} ({} of {} boxes after the training filter): {} synchronized and {} time-shifted pairs, false share {:.2}",
-        a.data.display(),
+        data.display(),
         set.num_boxes(),
         stats.before,
         cal.samples[0],
@@ -137,13 +188,65 @@ fn calibrate(a: CalibrateArgs) -> anyhow::Result<()> {
         .collect();
     println!("P(same | distance): {}", probs.join(" "));
     meta.calibration = Some(std::sync::Arc::new(cal));
-    meta.match_threshold = Some(a.match_threshold);
+    meta.match_threshold = Some(match_threshold);
+    Ok(())
+}
+
+fn combine(a: CombineArgs) -> anyhow::Result<()> {
+    check_match_threshold(a.match_threshold)?;
+    let mut members = Vec::new();
+    let mut sources = Vec::new();
+    let mut first_meta: Option<ModelMetadata> = None;
+    for path in &a.models {
+        let (e, m) = export::read_ensemble(path)?;
+        if let Some(first) = &first_meta
+            && first.cameras != m.cameras
+        {
+            anyhow::bail!(
+                "{} is for other cameras than {}",
+                path.display(),
+                a.models[0].display()
+            );
+        }
+        sources.push(serde_json::json!({
+            "file": path.file_name().map(|n| n.to_string_lossy().into_owned()),
+            "members": e.members().len(),
+            "width": e.width(),
+            "member": m.extra.get("crossview.member")
+                .and_then(|v| serde_json::from_str::<serde_json::Value>(v).ok()),
+        }));
+        members.extend(e.members().iter().cloned());
+        first_meta.get_or_insert(m);
+    }
+    let ensemble = Ensemble::new(members)?;
+    let mut meta = first_meta.expect("clap requires two or more models");
+    meta.calibration = None;
+    meta.match_threshold = None;
+    for key in [
+        "crossview.member",
+        "crossview.selection",
+        "crossview.validation",
+    ] {
+        meta.extra.remove(key);
+    }
+    meta.extra.insert(
+        "crossview.ensemble".into(),
+        serde_json::Value::Array(sources).to_string(),
+    );
+    match &a.data {
+        Some(data) => fit_calibration(&ensemble, &mut meta, data, a.match_threshold, a.seed)?,
+        None => eprintln!(
+            "no --data: the ensemble carries no calibration (identities use S); \
+             `crossview model calibrate` can add it"
+        ),
+    }
     meta.validate(&a.out.display().to_string())?;
-    write_onnx(&a.out, &weights, &meta)?;
+    write_ensemble_onnx(&a.out, &ensemble, &meta)?;
     println!(
-        "wrote {} (crossview.match_threshold {})",
+        "wrote {} ({} encoders, width {})",
         a.out.display(),
-        a.match_threshold
+        ensemble.members().len(),
+        ensemble.width()
     );
     Ok(())
 }

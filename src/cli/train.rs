@@ -175,6 +175,19 @@ pub struct TrainArgs {
     /// (`--holdout`) or `--val` is given, else 1. 1 = a single run.
     #[arg(long, value_parser = clap::value_parser!(u16).range(1..=64))]
     pub population: Option<u16>,
+    /// [ours] Where in the first stage (fractions of its epochs, comma-separated) a
+    /// population drops its worse half; `none` trains every member to the end.
+    #[arg(long, default_value = "0.25,0.5", value_parser = parse_fractions)]
+    pub halve_at: Fractions,
+    /// [ours] Export the best this many finalists of the population (by the label-free key)
+    /// together as one encoder: the embedding is theirs concatenated, so distances are the
+    /// RMS of theirs. 1 = the winner alone.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=16))]
+    pub ensemble: u16,
+    /// [ours] Also write every finalist of the population as its own model file in this
+    /// directory (`member-<i>.onnx`).
+    #[arg(long)]
+    pub members_out: Option<PathBuf>,
     /// Stop training after this many seconds (exploration; drops the learning rate at
     /// `--lr-drop-at` of the budget; not reproducible).
     #[arg(long)]
@@ -290,6 +303,24 @@ fn interrupt_on_ctrl_c() -> anyhow::Result<Arc<AtomicBool>> {
     Ok(flag)
 }
 
+/// A list of fractions in (0, 1), as `--halve-at` takes it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Fractions(pub Vec<f64>);
+
+/// Parses `none` or comma-separated fractions, each within (0, 1).
+fn parse_fractions(s: &str) -> Result<Fractions, String> {
+    if s.trim().eq_ignore_ascii_case("none") {
+        return Ok(Fractions(Vec::new()));
+    }
+    s.split(',')
+        .map(|p| match p.trim().parse::<f64>() {
+            Ok(f) if f > 0.0 && f < 1.0 => Ok(f),
+            _ => Err(format!("{p:?} is not a fraction within (0, 1)")),
+        })
+        .collect::<Result<Vec<_>, _>>()
+        .map(Fractions)
+}
+
 /// `--population` and `--threads` as the population's options.
 fn population_options(args: &TrainArgs) -> PopulationOptions {
     let machine = PopulationOptions::for_machine();
@@ -307,6 +338,8 @@ fn population_options(args: &TrainArgs) -> PopulationOptions {
         size,
         threads,
         keep_at_least: threads,
+        halve_at: args.halve_at.0.clone(),
+        ensemble: usize::from(args.ensemble),
         ..machine
     }
 }
@@ -371,6 +404,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         },
         progress: !args.quiet,
         population: population_options(&args),
+        members_out: args.members_out.clone(),
     })
     .with_context(|| {
         let names: Vec<_> = args.data.iter().map(|p| p.display().to_string()).collect();

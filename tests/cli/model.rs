@@ -1,5 +1,6 @@
 //! `crossview model init` writes a loadable encoder for a recording's scene; `model info`
-//! describes it; a bad recording header is a clear error.
+//! describes it; `model combine` joins encoders into one calibrated ensemble; a bad recording
+//! header is a clear error.
 use std::process::Command;
 
 use crossview_core::Encoder;
@@ -101,4 +102,126 @@ fn info_on_garbage_names_the_file() {
         .unwrap();
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("junk.onnx"));
+}
+
+/// A two-camera recording whose boxes move, so calibration has synchronized and shifted pairs.
+fn moving_recording(path: &std::path::Path, cams: &[&str]) {
+    let mut text = format!(
+        r#"{{"scene": {{"name": "lab", "cameras": [{}]}}}}"#,
+        cams.iter()
+            .map(|c| format!(r#"{{"name": "{c}", "width": 100, "height": 100}}"#))
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    text.push('\n');
+    for f in 0..40 {
+        for c in cams {
+            let boxes: Vec<String> = (0..3)
+                .map(|k| {
+                    let x = ((f * (2 + k) + 25 * k) % 80) as f32;
+                    format!(r#"{{"bbox": [{x}, 10, {}, 60]}}"#, x + 12.0)
+                })
+                .collect();
+            text += &format!(
+                r#"{{"camera": "{c}", "frame_id": {f}, "detections": [{}]}}"#,
+                boxes.join(", ")
+            );
+            text.push('\n');
+        }
+    }
+    std::fs::write(path, text).unwrap();
+}
+
+fn init_model(rec: &std::path::Path, out: &std::path::Path, seed: &str, width: &str) {
+    let st = crossview()
+        .args(["model", "init", "--scene-from"])
+        .arg(rec)
+        .arg("--out")
+        .arg(out)
+        .args(["--width", width, "--fourier", "8", "--camera-dim", "8"])
+        .args(["--blocks", "1", "--seed", seed])
+        .output()
+        .unwrap();
+    assert!(st.status.success(), "{st:?}");
+}
+
+#[test]
+fn combine_joins_encoders_into_one_calibrated_ensemble() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("rec.jsonl");
+    moving_recording(&rec, &["a", "b"]);
+    let (a, b) = (dir.path().join("a.onnx"), dir.path().join("b.onnx"));
+    init_model(&rec, &a, "1", "16");
+    init_model(&rec, &b, "2", "24");
+    let out = dir.path().join("e.onnx");
+    let st = crossview()
+        .args(["model", "combine"])
+        .args([&a, &b])
+        .arg("--out")
+        .arg(&out)
+        .arg("--data")
+        .arg(&rec)
+        .output()
+        .unwrap();
+    assert!(st.status.success(), "{st:?}");
+    let mut e = OnnxEncoder::load(&out).unwrap();
+    assert_eq!(e.dim(), 40);
+    assert!(e.metadata().calibration.is_some());
+    assert!(e.metadata().extra["crossview.ensemble"].contains("b.onnx"));
+    // The first 16 columns are a's embedding over √2.
+    let boxes = [[0.2, 0.1, 0.3, 0.6], [0.6, 0.2, 0.7, 0.7]];
+    let got = e.embed(&boxes, &[0, 1]).unwrap();
+    let first = OnnxEncoder::load(&a)
+        .unwrap()
+        .embed(&boxes, &[0, 1])
+        .unwrap();
+    for r in 0..2 {
+        for c in 0..16 {
+            let want = first[(r, c)] / 2f32.sqrt();
+            assert!((got[(r, c)] - want).abs() < 1e-4, "{r},{c}");
+        }
+    }
+    // Without --data the ensemble carries no calibration, and says so.
+    let plain = dir.path().join("plain.onnx");
+    let st = crossview()
+        .args(["model", "combine"])
+        .args([&a, &b])
+        .arg("--out")
+        .arg(&plain)
+        .output()
+        .unwrap();
+    assert!(st.status.success(), "{st:?}");
+    assert!(String::from_utf8_lossy(&st.stderr).contains("no calibration"));
+    assert!(
+        OnnxEncoder::load(&plain)
+            .unwrap()
+            .metadata()
+            .calibration
+            .is_none()
+    );
+}
+
+#[test]
+fn combine_refuses_models_of_other_cameras() {
+    let dir = tempfile::tempdir().unwrap();
+    let (r1, r2) = (dir.path().join("r1.jsonl"), dir.path().join("r2.jsonl"));
+    moving_recording(&r1, &["a", "b"]);
+    moving_recording(&r2, &["a", "c"]);
+    let (a, b) = (dir.path().join("a.onnx"), dir.path().join("b.onnx"));
+    init_model(&r1, &a, "1", "16");
+    init_model(&r2, &b, "2", "16");
+    let st = crossview()
+        .args(["model", "combine"])
+        .args([&a, &b])
+        .arg("--out")
+        .arg(dir.path().join("e.onnx"))
+        .output()
+        .unwrap();
+    assert!(!st.status.success());
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(
+        err.contains("other cameras") && err.contains("b.onnx"),
+        "{err}"
+    );
+    assert!(!dir.path().join("e.onnx").exists());
 }

@@ -1,8 +1,10 @@
 //! `crossview train --population K`: K members trained side by side, the worse ones dropped
-//! by the label-free key; the model file records every member and which one won; without
-//! held-out frames to rank them, the flag is refused.
+//! by the label-free key; the model file records every member and which one won; the best
+//! finalists can be exported together (`--ensemble`) and each on its own (`--members-out`);
+//! without held-out frames to rank them, the flag is refused.
+use crossview_core::Encoder;
 use crossview_data::recording::write_recording;
-use crossview_model::read_weights;
+use crossview_model::{OnnxEncoder, read_ensemble, read_weights};
 
 use crate::train::{recording, train, train_ok};
 
@@ -61,4 +63,128 @@ fn a_population_without_held_out_frames_is_refused() {
     assert!(!st.status.success());
     let err = String::from_utf8_lossy(&st.stderr);
     assert!(err.contains("--holdout"), "{err}");
+}
+
+#[test]
+fn the_best_finalists_are_exported_together_and_each_on_its_own() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("train.jsonl");
+    write_recording(&data, &recording(3, 40, false)).unwrap();
+    let out = dir.path().join("m.onnx");
+    let members_out = dir.path().join("members");
+    let args = [
+        "--population",
+        "3",
+        "--threads",
+        "2",
+        "--halve-at",
+        "none",
+        "--ensemble",
+        "2",
+        "--members-out",
+        members_out.to_str().unwrap(),
+    ];
+    let st = train_ok(&data, &out, &[&args[..], &SMALL[..]].concat());
+    let stdout = String::from_utf8_lossy(&st.stdout);
+    assert!(stdout.contains("together (width 32)"), "{stdout}");
+    let (ensemble, meta) = read_ensemble(&out).unwrap();
+    assert_eq!(ensemble.members().len(), 2);
+    assert!(meta.calibration.is_some(), "the ensemble is calibrated");
+    let pop: serde_json::Value = serde_json::from_str(&meta.extra["crossview.population"]).unwrap();
+    // `--halve-at none`: every member trains to the end.
+    assert!(
+        pop["members"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|m| m["dropped_at"].is_null()),
+        "{pop}"
+    );
+    let chosen = pop["ensemble"].as_array().unwrap();
+    assert_eq!(chosen.len(), 2, "{pop}");
+    assert_eq!(chosen[0]["member"], pop["winner"], "the winner comes first");
+    assert!(
+        chosen[0]["key"].as_f64() >= chosen[1]["key"].as_f64(),
+        "{pop}"
+    );
+    // Each finalist on its own, and the ensemble's parts are those files' encoders.
+    for (k, c) in chosen.iter().enumerate() {
+        let file = members_out.join(format!("member-{}.onnx", c["member"]));
+        let (w, m) = read_weights(&file).unwrap();
+        assert_eq!(&w, &ensemble.members()[k]);
+        assert!(m.extra["crossview.member"].contains("\"key\""));
+    }
+    assert_eq!(std::fs::read_dir(&members_out).unwrap().count(), 3);
+    let mut enc = OnnxEncoder::load(&out).unwrap();
+    assert_eq!(
+        enc.embed(&[[0.1, 0.2, 0.3, 0.5]], &[1]).unwrap().dim(),
+        (1, 32)
+    );
+}
+
+#[test]
+fn bad_halving_points_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("train.jsonl");
+    write_recording(&data, &recording(3, 20, false)).unwrap();
+    let out = dir.path().join("m.onnx");
+    for bad in ["1.5", "0", "half", ""] {
+        let st = train(&data, &out, &["--halve-at", bad]);
+        assert!(!st.status.success(), "{bad}");
+        let err = String::from_utf8_lossy(&st.stderr);
+        assert!(err.contains("--halve-at"), "{bad}: {err}");
+    }
+}
+
+#[test]
+fn an_ensemble_initialises_the_members_of_the_next_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("train.jsonl");
+    write_recording(&data, &recording(3, 40, false)).unwrap();
+    let first = dir.path().join("e.onnx");
+    let pop = ["--population", "2", "--threads", "2", "--halve-at", "none"];
+    train_ok(
+        &data,
+        &first,
+        &[&pop[..], &["--ensemble", "2"], &SMALL[..]].concat(),
+    );
+    let (start, _) = read_ensemble(&first).unwrap();
+    // With a learning rate of 1e-30 and no moving average nothing moves: each member ends
+    // where the ensemble's member it started from was.
+    let again = dir.path().join("again.onnx");
+    let frozen = [
+        "--ensemble",
+        "2",
+        "--lr",
+        "1e-30",
+        "--ema-decay",
+        "0",
+        "--init",
+        first.to_str().unwrap(),
+    ];
+    train_ok(&data, &again, &[&pop[..], &frozen[..], &SMALL[..]].concat());
+    let (end, _) = read_ensemble(&again).unwrap();
+    assert_eq!(end.members().len(), 2);
+    for m in end.members() {
+        assert!(
+            start.members().contains(m),
+            "a member did not start from the ensemble"
+        );
+    }
+    assert_ne!(end.members()[0], end.members()[1]);
+    // A single run starts from the ensemble's first member.
+    let single = dir.path().join("single.onnx");
+    let one = [
+        "--population",
+        "1",
+        "--lr",
+        "1e-30",
+        "--ema-decay",
+        "0",
+        "--init",
+        first.to_str().unwrap(),
+    ];
+    train_ok(&data, &single, &[&one[..], &SMALL[..]].concat());
+    let (w, _) = read_weights(&single).unwrap();
+    assert_eq!(&w, &start.members()[0]);
 }

@@ -37,6 +37,7 @@ fn two_halved_once() -> PopulationOptions {
         halve_at: vec![0.5],
         keep_at_least: 1,
         window: 2,
+        ensemble: 1,
     }
 }
 

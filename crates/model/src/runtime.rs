@@ -8,10 +8,8 @@ use ort::environment::Environment;
 use ort::session::Session;
 use ort::value::TensorRef;
 
-use super::export::{
-    INIT_CAMERA_EMBEDDING, INPUT_BOXES, INPUT_CAMERA, OUTPUT_EMBEDDING, decode_model,
-    model_metadata, read_model_file,
-};
+use super::export::{decode_model, model_metadata, read_model_file};
+use super::graph::{INIT_CAMERA_EMBEDDING, INPUT_BOXES, INPUT_CAMERA, OUTPUT_EMBEDDING};
 use super::onnx::{DT_FLOAT, DT_INT64, DimensionValue, ModelProto, ValueInfoProto};
 use crossview_core::Encoder;
 
@@ -300,15 +298,15 @@ pub fn check_contract(
             ));
         }
     };
-    if let Some(t) = graph
-        .initializer
-        .iter()
-        .find(|t| t.name == INIT_CAMERA_EMBEDDING)
-        && t.dims.first() != Some(&(num_cameras as i64))
-    {
+    // Every camera table (one per member of an ensemble) has a row per camera.
+    let suffix = format!(".{INIT_CAMERA_EMBEDDING}");
+    if let Some(t) = graph.initializer.iter().find(|t| {
+        (t.name == INIT_CAMERA_EMBEDDING || t.name.ends_with(&suffix))
+            && t.dims.first() != Some(&(num_cameras as i64))
+    }) {
         return Err(format!(
-            "{num_cameras} cameras in metadata but {INIT_CAMERA_EMBEDDING} has dims {:?}",
-            t.dims
+            "{num_cameras} cameras in metadata but {} has dims {:?}",
+            t.name, t.dims
         ));
     }
     Ok(dim)

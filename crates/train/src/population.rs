@@ -22,7 +22,7 @@ use crate::member::{Member, mix};
 use crate::state::{CheckpointOptions, EpochRecord, Scoring, Select, TrainOutcome, ValScores};
 use crate::trainer::{improves, score_label_free};
 use crossview_core::{Error, Result};
-use crossview_model::EncoderWeights;
+use crossview_model::{EncoderWeights, Ensemble};
 
 /// How a population is run.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -38,6 +38,14 @@ pub struct PopulationOptions {
     /// Consecutive scorings averaged into the key that ranks the members (one scoring is
     /// noisy).
     pub window: usize,
+    /// The best this many finalists (by the key of their kept weights) are exported together
+    /// as one encoder ([`crossview_model::Ensemble`]); 1 = the winner alone.
+    #[serde(default = "one")]
+    pub ensemble: usize,
+}
+
+fn one() -> usize {
+    1
 }
 
 impl PopulationOptions {
@@ -51,6 +59,7 @@ impl PopulationOptions {
             halve_at: vec![0.25, 0.5],
             keep_at_least: threads,
             window: 3,
+            ensemble: 1,
         }
     }
 
@@ -62,6 +71,7 @@ impl PopulationOptions {
             halve_at: Vec::new(),
             keep_at_least: 1,
             window: 1,
+            ensemble: 1,
         }
     }
 }
@@ -127,11 +137,12 @@ pub fn member_seed(seed: u64, i: usize) -> u64 {
     }
 }
 
-/// Trains a population of `opts.size` members on `set` (see the module docs).
+/// Trains a population of `opts.size` members on `set` (see the module docs). With `init`
+/// (an exported encoder or ensemble), member `i` starts from its member `i mod M`.
 pub fn train_population(
     set: &TrainingSet,
     cfg: &TrainConfig,
-    init: Option<&EncoderWeights>,
+    init: Option<&Ensemble>,
     scoring: Scoring<'_>,
     ckpt: &CheckpointOptions,
     progress: bool,
@@ -146,7 +157,10 @@ pub fn train_population(
                 Some(d) if ckpt.resume && crate::checkpoint::exists(&d) => {
                     Member::resume(set, &c, &d)
                 }
-                _ => Member::new(set, &c, init),
+                _ => {
+                    let start = init.map(|e| &e.members()[i % e.members().len()]);
+                    Member::new(set, &c, start)
+                }
             }
         })
         .collect::<Result<Vec<_>>>()?;

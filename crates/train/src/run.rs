@@ -6,8 +6,8 @@ use std::path::PathBuf;
 
 use crossview_core::{CameraSpec, Error, Result};
 use crossview_data::recording::{Recording, read_recording, read_recordings};
-use crossview_model::export::{read_weights, write_onnx};
-use crossview_model::{EncoderWeights, ModelMetadata};
+use crossview_model::export::{read_ensemble, write_ensemble_onnx};
+use crossview_model::{Ensemble, ModelMetadata};
 
 use crate::TrainingSet;
 use crate::calibrate::calibrate;
@@ -60,6 +60,9 @@ pub struct RunOptions {
     /// **[ours]** How many members train side by side ([`PopulationOptions::single`]: one
     /// run).
     pub population: PopulationOptions,
+    /// **[ours]** Also write every finalist of a population as its own model file here
+    /// (`member-<i>.onnx`), to compare them or combine them differently later.
+    pub members_out: Option<PathBuf>,
 }
 
 /// What a run wrote, in words for the user.
@@ -132,24 +135,32 @@ pub fn run(opts: RunOptions) -> Result<RunReport> {
                 "why": "best label-free key of its kept weights among the finalists",
                 "options": opts.population,
                 "members": p.members,
+                "ensemble": p.finalists.iter().take(opts.population.ensemble.max(1))
+                    .map(|(i, _, key)| serde_json::json!({"member": i, "key": key}))
+                    .collect::<Vec<_>>(),
             })
             .to_string(),
         );
     }
-    // Label-free confidence: synchronized vs time-shifted pairs of the training frames.
-    let mut exported = outcome.weights.clone();
-    match calibrate(&mut exported, &set, cfg.seed) {
-        Ok(cal) => {
-            meta.calibration = Some(std::sync::Arc::new(cal));
-            meta.match_threshold = Some(opts.match_threshold);
-        }
-        Err(e) => tracing::warn!(error = %e, "no calibration stored: identities will use S"),
+    if let (Some(p), Some(dir)) = (&population, &opts.members_out) {
+        write_members(dir, p, &meta, &set, &opts)?;
     }
-    write_onnx(&opts.out, &outcome.weights, &meta)?;
+    let ensemble = exported_ensemble(&outcome, population.as_ref(), opts.population.ensemble)?;
+    let threshold = meta.threshold;
+    export(&opts.out, &ensemble, meta, &set, &opts)?;
     let curve = write_curve_and_history(&opts, &outcome, &data_name)?;
-    let mut summary = summary(&outcome, meta.threshold);
+    let mut summary = summary(&outcome, threshold);
     if let Some(p) = &population {
         summary.push_str(&format!("; population: {}", p.summary()));
+        let m = ensemble.members().len();
+        if m > 1 {
+            let chosen: Vec<String> = p.finalists[..m].iter().map(|f| f.0.to_string()).collect();
+            summary.push_str(&format!(
+                "; exported members {} together (width {})",
+                chosen.join(", "),
+                ensemble.width()
+            ));
+        }
     }
     Ok(RunReport {
         summary,
@@ -158,12 +169,86 @@ pub fn run(opts: RunOptions) -> Result<RunReport> {
     })
 }
 
+/// What is exported: the best `size` finalists of a population as one encoder, or the
+/// outcome's weights alone.
+fn exported_ensemble(
+    outcome: &TrainOutcome,
+    population: Option<&PopulationOutcome>,
+    size: usize,
+) -> Result<Ensemble> {
+    match population {
+        Some(p) if size > 1 && p.finalists.len() > 1 => Ensemble::new(
+            p.finalists
+                .iter()
+                .take(size)
+                .map(|(_, w, _)| w.clone())
+                .collect(),
+        ),
+        _ => Ok(Ensemble::single(outcome.weights.clone())),
+    }
+}
+
+/// Fits the label-free confidence (synchronized vs time-shifted pairs of the training frames)
+/// into `meta` and writes the model file.
+fn export(
+    out: &std::path::Path,
+    ensemble: &Ensemble,
+    mut meta: ModelMetadata,
+    set: &TrainingSet,
+    opts: &RunOptions,
+) -> Result<()> {
+    let mut encoder = ensemble.clone();
+    match calibrate(&mut encoder, set, opts.config.seed) {
+        Ok(cal) => {
+            meta.calibration = Some(std::sync::Arc::new(cal));
+            meta.match_threshold = Some(opts.match_threshold);
+        }
+        Err(e) => tracing::warn!(error = %e, "no calibration stored: identities will use S"),
+    }
+    write_ensemble_onnx(out, ensemble, &meta)
+}
+
+/// Writes every finalist of `population` as `dir/member-<i>.onnx`, each with its own
+/// calibration and `crossview.member` (index, seed, key) in its metadata.
+fn write_members(
+    dir: &std::path::Path,
+    population: &PopulationOutcome,
+    meta: &ModelMetadata,
+    set: &TrainingSet,
+    opts: &RunOptions,
+) -> Result<()> {
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    for (i, weights, key) in &population.finalists {
+        let mut m = meta.clone();
+        // What chose the winner's epoch does not describe this member.
+        for key in [
+            "crossview.epochs",
+            "crossview.selection",
+            "crossview.validation",
+        ] {
+            m.extra.remove(key);
+        }
+        m.extra.insert(
+            "crossview.member".into(),
+            serde_json::json!({
+                "member": i,
+                "seed": population.members[*i].seed,
+                "key": key,
+            })
+            .to_string(),
+        );
+        let single = Ensemble::single(weights.clone());
+        export(&dir.join(format!("member-{i}.onnx")), &single, m, set, opts)?;
+    }
+    Ok(())
+}
+
 /// Trains a population (when `opts.population` asks for one and something can rank its
 /// members) or a single run; the outcome to export and the population's report.
 fn train_members(
     set: &TrainingSet,
     cfg: &TrainConfig,
-    init: Option<&EncoderWeights>,
+    init: Option<&Ensemble>,
     scoring: Scoring<'_>,
     opts: &RunOptions,
 ) -> Result<(TrainOutcome, Option<PopulationOutcome>)> {
@@ -186,6 +271,7 @@ fn train_members(
         )?;
         (p.outcome.clone(), Some(p))
     } else {
+        let init = init.map(|e| &e.members()[0]);
         let out = train_from(set, cfg, init, scoring, &opts.checkpoint, opts.progress)?;
         (out, None)
     };
@@ -242,16 +328,19 @@ fn read_training_set(opts: &RunOptions) -> Result<(Recording, TrainingSet, Strin
     Ok((rec, set, read_summary))
 }
 
-/// The `--init` model's encoder, when given; its shape overrides `cfg`'s.
+/// The `--init` model's encoder (or ensemble: member `i` of a population starts from its
+/// member `i mod M`, a single run from its first), when given; its (first member's) shape
+/// overrides `cfg`'s.
 fn initial_weights(
     opts: &RunOptions,
     cameras: &[CameraSpec],
     cfg: &mut TrainConfig,
-) -> Result<Option<EncoderWeights>> {
+) -> Result<Option<Ensemble>> {
     let Some(p) = &opts.init else {
         return Ok(None);
     };
-    let (w, m) = read_weights(p)?;
+    let (e, m) = read_ensemble(p)?;
+    let w = &e.members()[0];
     if m.cameras != cameras {
         return Err(Error::Training(format!(
             "{} was trained for other cameras than the training data",
@@ -262,7 +351,7 @@ fn initial_weights(
     cfg.camera_dim = w.config.camera_dim;
     cfg.width = w.config.width;
     cfg.blocks = w.config.blocks;
-    Ok(Some(w))
+    Ok(Some(e))
 }
 
 /// The labelled validator over `--val`, when given.
