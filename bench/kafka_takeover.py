@@ -184,10 +184,14 @@ def main():
 
         acked, failed = [], [0]
 
+        created = {}
+
         def on_delivery(err, msg):
             if err is None:
-                acked.append((msg.key().decode(), json.loads(msg.value())["camera"],
-                               json.loads(msg.value())["frame_id"]))
+                key = (msg.key().decode(), json.loads(msg.value())["camera"],
+                       json.loads(msg.value())["frame_id"])
+                acked.append(key)
+                created[key] = msg.timestamp()[1] / 1000.0
             else:
                 failed[0] += 1
 
@@ -261,6 +265,14 @@ def main():
     frames_sent = {(s, f) for s, _, f in acked}
     batches_lost = sum(1 for s, c, f in acked if c not in reported.get((s, f), set()))
     frames_lost = sum(1 for k in frames_sent if k not in copies)
+    # How late the source itself sent each lost batch: its create time less the earliest of
+    # its frame's batches (the producer here runs on the same loaded cores, so it can fall
+    # behind its 50 ms schedule); beyond the sync timeout the batch was late at the source.
+    first_sent = {}
+    for (s_, c_, f_), t in created.items():
+        first_sent[(s_, f_)] = min(t, first_sent.get((s_, f_), t))
+    lost_spread = sorted(created[(s_, c_, f_)] - first_sent[(s_, f_)]
+                         for s_, c_, f_ in acked if c_ not in reported.get((s_, f_), set()))
     dups = {k: v for k, v in copies.items() if len(v) > 1}
     dup_tagged = all(c["producer"] and c["epoch"] is not None for v in dups.values() for c in v)
     dup_distinct = all(len({(c["producer"], c["epoch"]) for c in v}) == len(v) for v in dups.values())
@@ -305,6 +317,11 @@ def main():
         "first_readyz_s": [round(ready_a, 2), round(ready_b, 2)], "all_assigned_s": round(settle, 2),
         "scenes_a_b": [len(a_scenes), len(b_scenes)],
         "dead_letter_reasons": reasons, "partial_results_by_phase": partial_when,
+        "lost_batches_sent_late_s": {
+            "within_0.2": sum(1 for x in lost_spread if x <= 0.2),
+            "beyond_0.2": sum(1 for x in lost_spread if x > 0.2),
+            "max": round(lost_spread[-1], 3) if lost_spread else None,
+        },
     }
     with open(os.path.join(a.out, f"run{a.run}.json"), "w") as f:
         json.dump(report, f, indent=1)
