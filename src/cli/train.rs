@@ -169,20 +169,20 @@ pub struct TrainArgs {
     #[arg(long, env = "CROSSVIEW_THREADS")]
     pub threads: Option<usize>,
     /// [ours] Train this many members (the run's seed and seeds derived from it) side by
-    /// side, one per thread, and drop the worse half by the label-free key at 25 % and 50 %
-    /// of the first stage, down to one member per thread; the finalist with the best key is
-    /// exported. Default: one member per core and at least 4 when frames are held out
-    /// (`--holdout`) or `--val` is given, else 1. 1 = a single run.
+    /// side, one per thread, rank them by the label-free key and export the best
+    /// `--ensemble` of them together. Default: one member per core and at least 4 when frames
+    /// are held out (`--holdout`) or `--val` is given, else 1. 1 = a single run.
     #[arg(long, value_parser = clap::value_parser!(u16).range(1..=64))]
     pub population: Option<u16>,
-    /// [ours] Where in the first stage (fractions of its epochs, comma-separated) a
-    /// population drops its worse half; `none` trains every member to the end.
-    #[arg(long, default_value = "0.25,0.5", value_parser = parse_fractions)]
+    /// [ours] Where in the first stage (fractions of its epochs, comma-separated, e.g.
+    /// `0.25,0.5`) a population drops its worse half, down to one member per thread; `none`
+    /// (the default) trains every member to the end.
+    #[arg(long, default_value = "none", value_parser = parse_fractions)]
     pub halve_at: Fractions,
     /// [ours] Export the best this many finalists of the population (by the label-free key)
     /// together as one encoder: the embedding is theirs concatenated, so distances are the
-    /// RMS of theirs. 1 = the winner alone.
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=16))]
+    /// RMS of theirs. 1 = the winner alone; more than the finalists = all of them.
+    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u16).range(1..=16))]
     pub ensemble: u16,
     /// [ours] Also write every finalist of the population as its own model file in this
     /// directory (`member-<i>.onnx`).

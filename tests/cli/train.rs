@@ -7,7 +7,7 @@ use std::process::{Command, Output};
 use crossview_core::{CameraSpec, Detection, Frame, SceneSpec};
 use crossview_data::Recording;
 use crossview_data::recording::write_recording;
-use crossview_model::read_weights;
+use crossview_model::read_ensemble;
 
 /// A small recording of 3 people walking past `cameras` cameras (ids when `ids`).
 pub(crate) fn recording(cameras: usize, frames: usize, ids: bool) -> Recording {
@@ -111,8 +111,9 @@ fn train_writes_model_curve_and_history() {
         String::from_utf8_lossy(&st.stderr)
     );
     assert!(String::from_utf8_lossy(&st.stdout).contains("val ACC"));
-    let (w, meta) = read_weights(&out).unwrap();
-    assert_eq!(w.config.width, 24);
+    // The default population exports its best finalists together; each is width 24.
+    let (e, meta) = read_ensemble(&out).unwrap();
+    assert!(e.members().iter().all(|w| w.config.width == 24));
     assert_eq!(meta.cameras.len(), 2);
     assert!((0.0..=0.9).contains(&meta.threshold));
     assert_eq!(meta.extra["crossview.training_data"], "train.jsonl");
@@ -148,7 +149,7 @@ fn without_validation_the_given_threshold_is_kept() {
         "0.3",
     ];
     train_ok(&data, &out, &[&args[..], &threshold[..]].concat());
-    let (_, meta) = read_weights(&out).unwrap();
+    let (_, meta) = read_ensemble(&out).unwrap();
     assert!((meta.threshold - 0.3).abs() < 1e-6);
     assert!(!meta.extra.contains_key("crossview.validation"));
 }
@@ -207,7 +208,7 @@ fn box_filter_is_recorded_and_an_empty_result_is_refused() {
         "{}",
         String::from_utf8_lossy(&st.stderr)
     );
-    let (_, meta) = read_weights(&out).unwrap();
+    let (_, meta) = read_ensemble(&out).unwrap();
     let filter = &meta.extra["crossview.train_box_filter"];
     assert!(filter.contains("\"min_height\":0.3"), "{filter}");
     assert!(filter.contains("\"static_iou\":0.95"), "{filter}");

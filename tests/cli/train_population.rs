@@ -32,7 +32,16 @@ fn a_population_records_its_members_and_the_winner() {
     write_recording(&data, &recording(3, 40, false)).unwrap();
     let out = dir.path().join("m.onnx");
     // One thread: halving goes down to one member (it keeps one per thread).
-    let args = ["--population", "3", "--threads", "1"];
+    let args = [
+        "--population",
+        "3",
+        "--threads",
+        "1",
+        "--halve-at",
+        "0.25,0.5",
+        "--ensemble",
+        "1",
+    ];
     let st = train_ok(&data, &out, &[&args[..], &SMALL[..]].concat());
     let stdout = String::from_utf8_lossy(&st.stdout);
     assert!(stdout.contains("population: member"), "{stdout}");
