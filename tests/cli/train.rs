@@ -111,9 +111,21 @@ fn train_writes_model_curve_and_history() {
         String::from_utf8_lossy(&st.stderr)
     );
     assert!(String::from_utf8_lossy(&st.stdout).contains("val ACC"));
-    // The default population exports its best finalists together; each is width 24.
+    // The default population (one member per core, at least 4) trains every member to the
+    // end and exports the best 4 together; each is width 24.
     let (e, meta) = read_ensemble(&out).unwrap();
+    assert_eq!(e.members().len(), 4);
     assert!(e.members().iter().all(|w| w.config.width == 24));
+    let pop: serde_json::Value = serde_json::from_str(&meta.extra["crossview.population"]).unwrap();
+    assert!(
+        pop["members"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|m| m["dropped_at"].is_null()),
+        "{pop}"
+    );
+    assert_eq!(pop["ensemble"].as_array().unwrap().len(), 4);
     assert_eq!(meta.cameras.len(), 2);
     assert!((0.0..=0.9).contains(&meta.threshold));
     assert_eq!(meta.extra["crossview.training_data"], "train.jsonl");
