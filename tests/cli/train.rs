@@ -7,7 +7,7 @@ use std::process::{Command, Output};
 use crossview_core::{CameraSpec, Detection, Frame, SceneSpec};
 use crossview_data::Recording;
 use crossview_data::recording::write_recording;
-use crossview_model::read_ensemble;
+use crossview_model::{ModelMetadata, read_ensemble};
 
 /// A small recording of 3 people walking past `cameras` cameras (ids when `ids`).
 pub(crate) fn recording(cameras: usize, frames: usize, ids: bool) -> Recording {
@@ -57,6 +57,23 @@ pub(crate) fn train(data: &Path, out: &Path, args: &[&str]) -> Output {
         .arg(out)
         .output()
         .unwrap()
+}
+
+/// The population record a trained model file carries (`crossview.population`).
+pub(crate) fn population(meta: &ModelMetadata) -> serde_json::Value {
+    serde_json::from_str(&meta.extra["crossview.population"]).unwrap()
+}
+
+/// Every member of the population record `pop` trained to the end (none was dropped).
+pub(crate) fn assert_none_dropped(pop: &serde_json::Value) {
+    assert!(
+        pop["members"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|m| m["dropped_at"].is_null()),
+        "{pop}"
+    );
 }
 
 /// [`train`], which must succeed (its log is the failure message).
@@ -116,15 +133,8 @@ fn train_writes_model_curve_and_history() {
     let (e, meta) = read_ensemble(&out).unwrap();
     assert_eq!(e.members().len(), 4);
     assert!(e.members().iter().all(|w| w.config.width == 24));
-    let pop: serde_json::Value = serde_json::from_str(&meta.extra["crossview.population"]).unwrap();
-    assert!(
-        pop["members"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .all(|m| m["dropped_at"].is_null()),
-        "{pop}"
-    );
+    let pop = population(&meta);
+    assert_none_dropped(&pop);
     assert_eq!(pop["ensemble"].as_array().unwrap().len(), 4);
     assert_eq!(meta.cameras.len(), 2);
     assert!((0.0..=0.9).contains(&meta.threshold));

@@ -6,7 +6,7 @@ use crossview_core::Encoder;
 use crossview_data::recording::write_recording;
 use crossview_model::{OnnxEncoder, read_ensemble, read_weights};
 
-use crate::train::{recording, train, train_ok};
+use crate::train::{assert_none_dropped, population, recording, train, train_ok};
 
 const SMALL: [&str; 14] = [
     "--width",
@@ -46,7 +46,7 @@ fn a_population_records_its_members_and_the_winner() {
     let stdout = String::from_utf8_lossy(&st.stdout);
     assert!(stdout.contains("population: member"), "{stdout}");
     let (_, meta) = read_weights(&out).unwrap();
-    let pop: serde_json::Value = serde_json::from_str(&meta.extra["crossview.population"]).unwrap();
+    let pop = population(&meta);
     let members = pop["members"].as_array().unwrap();
     assert_eq!(members.len(), 3);
     assert_eq!(members[0]["seed"], 2);
@@ -99,16 +99,9 @@ fn the_best_finalists_are_exported_together_and_each_on_its_own() {
     let (ensemble, meta) = read_ensemble(&out).unwrap();
     assert_eq!(ensemble.members().len(), 2);
     assert!(meta.calibration.is_some(), "the ensemble is calibrated");
-    let pop: serde_json::Value = serde_json::from_str(&meta.extra["crossview.population"]).unwrap();
+    let pop = population(&meta);
     // `--halve-at none`: every member trains to the end.
-    assert!(
-        pop["members"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .all(|m| m["dropped_at"].is_null()),
-        "{pop}"
-    );
+    assert_none_dropped(&pop);
     let chosen = pop["ensemble"].as_array().unwrap();
     assert_eq!(chosen.len(), 2, "{pop}");
     assert_eq!(chosen[0]["member"], pop["winner"], "the winner comes first");

@@ -1,24 +1,13 @@
 //! An ensemble model file, run through the real ONNX Runtime, computes the members' reference
 //! forward passes scaled by 1/√M and concatenated; it round-trips member by member; a file
 //! of one encoder is unchanged by the ensemble path; single-encoder readers refuse it clearly.
-use crossview_core::{CameraSpec, Encoder, Error};
+use crossview_core::{Encoder, Error};
 use crossview_model::{
-    EncoderConfig, EncoderWeights, Ensemble, ModelMetadata, OnnxEncoder, read_ensemble,
-    read_weights, to_onnx_bytes, write_ensemble_onnx, write_onnx,
+    EncoderConfig, EncoderWeights, Ensemble, OnnxEncoder, read_ensemble, read_weights,
+    to_onnx_bytes, write_ensemble_onnx, write_onnx,
 };
 
-fn metadata(n: usize) -> ModelMetadata {
-    ModelMetadata::new(
-        (0..n)
-            .map(|i| CameraSpec {
-                offset: 0,
-                name: format!("cam{i}"),
-                width: 640,
-                height: 480,
-            })
-            .collect(),
-    )
-}
+use super::export::{max_abs_diff, metadata};
 
 fn member(seed: u64, width: usize, blocks: usize) -> EncoderWeights {
     let cfg = EncoderConfig {
@@ -56,11 +45,7 @@ fn ensemble_file_runs_the_members_scaled_and_concatenated() {
     let (b, c) = boxes();
     let got = onnx.embed(&b, &c).unwrap();
     let want = e.forward(&b, &c).unwrap();
-    let diff = got
-        .iter()
-        .zip(want.iter())
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0f32, f32::max);
+    let diff = max_abs_diff(&got, &want);
     assert!(diff < 1e-4, "max abs diff {diff}");
     // Each part is that member's embedding over √3.
     let first = e.members()[0].forward(&b, &c).unwrap();

@@ -12,7 +12,7 @@ use prost::Message;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-fn metadata(n: usize) -> ModelMetadata {
+pub(super) fn metadata(n: usize) -> ModelMetadata {
     ModelMetadata::new(
         (0..n)
             .map(|i| CameraSpec {
@@ -46,7 +46,7 @@ fn inputs(n: usize, num_cameras: usize, seed: u64) -> (Vec<[f32; 4]>, Vec<i64>) 
     (boxes, cams)
 }
 
-fn max_abs_diff(a: &ndarray::Array2<f32>, b: &ndarray::Array2<f32>) -> f32 {
+pub(super) fn max_abs_diff(a: &ndarray::Array2<f32>, b: &ndarray::Array2<f32>) -> f32 {
     assert_eq!(a.dim(), b.dim());
     a.iter()
         .zip(b.iter())
