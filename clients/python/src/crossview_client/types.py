@@ -50,9 +50,12 @@ class Detection:
 
 # What push() takes as a camera's boxes: Detection objects, SPEC §7 dicts
 # ({"bbox": [x1, y1, x2, y2], "score"?, "appearance"?}), or an N×4 / N×5 (x1, y1, x2, y2[,
-# score]) NumPy array.
+# score]) NumPy array (or the same as nested lists of numbers).
 Boxes: TypeAlias = Union[
-    Sequence[Detection], Sequence[Mapping[str, Any]], "npt.NDArray[np.floating[Any]]"
+    Sequence[Detection],
+    Sequence[Mapping[str, Any]],
+    Sequence[Sequence[float]],
+    "npt.NDArray[Any]",
 ]
 
 
@@ -67,6 +70,10 @@ def to_detections(
     image, scores in [0, 1]) are the server's to judge, so its error names the field.
     """
     dets: list[Detection]
+    if not isinstance(boxes, np.ndarray) and len(boxes) > 0 and all(
+        not isinstance(b, (Mapping, Detection, str, bytes)) for b in boxes
+    ):
+        boxes = np.asarray(boxes, dtype=np.float64)  # rows of numbers
     if isinstance(boxes, np.ndarray):
         arr = np.asarray(boxes, dtype=np.float64)
         if arr.size == 0:
