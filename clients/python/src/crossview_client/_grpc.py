@@ -53,8 +53,8 @@ _CHANNEL_OPTIONS: list[tuple[str, Any]] = [
 ]
 
 
-def _options(s: Settings) -> list[tuple[str, Any]]:
-    opts = list(_CHANNEL_OPTIONS)
+def _options(s: Settings, extra: Iterable[tuple[str, Any]] = ()) -> list[tuple[str, Any]]:
+    opts = list(_CHANNEL_OPTIONS) + list(extra)
     if s.tls_server_name:
         opts.append(("grpc.ssl_target_name_override", s.tls_server_name))
     return opts
@@ -160,6 +160,7 @@ class GrpcClient(SyncClient):
     (PEM bytes, string or path) / ``tls_server_name``: TLS to a server with ``--tls-cert``.
     ``timeout``: the default bound, in seconds, of every call (connecting included); each
     method also takes its own. ``max_in_flight``: batches ``push_many`` keeps unacknowledged.
+    ``channel_options``: further ``grpc`` channel arguments (after this client's defaults).
     Thread-safe.
     """
 
@@ -173,6 +174,7 @@ class GrpcClient(SyncClient):
         tls_server_name: str | None = None,
         timeout: float = DEFAULT_TIMEOUT,
         max_in_flight: int = DEFAULT_MAX_IN_FLIGHT,
+        channel_options: Iterable[tuple[str, Any]] = (),
     ) -> None:
         self.settings = make_settings(
             address, api_key=api_key, tls=tls, ca_cert=ca_cert,
@@ -180,9 +182,9 @@ class GrpcClient(SyncClient):
         )
         s = self.settings
         if s.tls:
-            self._channel = grpc.secure_channel(s.target, _credentials(s), options=_options(s))
+            self._channel = grpc.secure_channel(s.target, _credentials(s), options=_options(s, channel_options))
         else:
-            self._channel = grpc.insecure_channel(s.target, options=_options(s))
+            self._channel = grpc.insecure_channel(s.target, options=_options(s, channel_options))
         self._stub = rpc.AssociationStub(self._channel)
         self._health = self._channel.unary_unary(
             "/grpc.health.v1.Health/Check",
@@ -442,6 +444,7 @@ class AsyncGrpcClient:
         tls_server_name: str | None = None,
         timeout: float = DEFAULT_TIMEOUT,
         max_in_flight: int = DEFAULT_MAX_IN_FLIGHT,
+        channel_options: Iterable[tuple[str, Any]] = (),
     ) -> None:
         self.settings = make_settings(
             address, api_key=api_key, tls=tls, ca_cert=ca_cert,
@@ -449,9 +452,9 @@ class AsyncGrpcClient:
         )
         s = self.settings
         if s.tls:
-            self._channel = grpc.aio.secure_channel(s.target, _credentials(s), options=_options(s))
+            self._channel = grpc.aio.secure_channel(s.target, _credentials(s), options=_options(s, channel_options))
         else:
-            self._channel = grpc.aio.insecure_channel(s.target, options=_options(s))
+            self._channel = grpc.aio.insecure_channel(s.target, options=_options(s, channel_options))
         self._stub = rpc.AssociationStub(self._channel)
         self._md = _metadata(s)
         self._max_in_flight = max(1, max_in_flight)

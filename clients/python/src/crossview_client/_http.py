@@ -196,7 +196,8 @@ def _quote(segment: str) -> str:
 class HttpClient(SyncClient):
     """A synchronous crossview client over HTTP/JSON (results over SSE).
 
-    Same arguments as ``GrpcClient``; ``timeout`` bounds connecting and every read and write of
+    Same arguments as ``GrpcClient``, plus ``http_transport``: an ``httpx`` transport of your own
+    (socket options, proxies; it then also carries the TLS settings); ``timeout`` bounds connecting and every read and write of
     a request. A subscription reads with a ``SSE_SILENCE_TIMEOUT`` bound (the server sends a
     keep-alive every 15 s), so a dead connection is noticed. Thread-safe (httpx's pool).
     """
@@ -210,6 +211,7 @@ class HttpClient(SyncClient):
         ca_cert: Any = None,
         tls_server_name: str | None = None,
         timeout: float = DEFAULT_TIMEOUT,
+        http_transport: httpx.BaseTransport | None = None,
     ) -> None:
         self.settings = make_settings(
             address, api_key=api_key, tls=tls, ca_cert=ca_cert,
@@ -218,7 +220,7 @@ class HttpClient(SyncClient):
         s = _check_settings(self.settings)
         self._http = httpx.Client(
             base_url=s.base_url, headers=_headers(s), verify=_verify(s),
-            timeout=httpx.Timeout(s.timeout), trust_env=False,
+            timeout=httpx.Timeout(s.timeout), trust_env=False, transport=http_transport,
         )
 
     def _t(self, timeout: float | None) -> httpx.Timeout:
@@ -391,6 +393,7 @@ class AsyncHttpClient:
         ca_cert: Any = None,
         tls_server_name: str | None = None,
         timeout: float = DEFAULT_TIMEOUT,
+        http_transport: httpx.AsyncBaseTransport | None = None,
     ) -> None:
         self.settings = make_settings(
             address, api_key=api_key, tls=tls, ca_cert=ca_cert,
@@ -399,7 +402,7 @@ class AsyncHttpClient:
         s = _check_settings(self.settings)
         self._http = httpx.AsyncClient(
             base_url=s.base_url, headers=_headers(s), verify=_verify(s),
-            timeout=httpx.Timeout(s.timeout), trust_env=False,
+            timeout=httpx.Timeout(s.timeout), trust_env=False, transport=http_transport,
         )
 
     def _t(self, timeout: float | None) -> httpx.Timeout:
