@@ -185,7 +185,7 @@ class GrpcClient(SyncClient):
             self._channel = grpc.secure_channel(s.target, _credentials(s), options=_options(s, channel_options))
         else:
             self._channel = grpc.insecure_channel(s.target, options=_options(s, channel_options))
-        self._stub = rpc.AssociationStub(self._channel)
+        self._stub = rpc.AssociationStub(self._channel)  # type: ignore[no-untyped-call]
         self._health = self._channel.unary_unary(
             "/grpc.health.v1.Health/Check",
             request_serializer=lambda b: b,
@@ -404,7 +404,7 @@ class _AsyncPushCall:
         try:
             while True:
                 ack = await self._call.read()
-                if ack is grpc.aio.EOF:
+                if ack is grpc.aio.EOF:  # type: ignore[attr-defined]
                     err = Unavailable("the server ended the push stream (shutting down?)")
                     break
                 fut = self._pending.popleft() if self._pending else None
@@ -455,7 +455,7 @@ class AsyncGrpcClient:
             self._channel = grpc.aio.secure_channel(s.target, _credentials(s), options=_options(s, channel_options))
         else:
             self._channel = grpc.aio.insecure_channel(s.target, options=_options(s, channel_options))
-        self._stub = rpc.AssociationStub(self._channel)
+        self._stub = rpc.AssociationStub(self._channel)  # type: ignore[no-untyped-call]
         self._md = _metadata(s)
         self._max_in_flight = max(1, max_in_flight)
         self._push_call: _AsyncPushCall | None = None
@@ -614,7 +614,7 @@ class AsyncGrpcClient:
         if self._push_call is not None:
             await self._push_call.close()
             self._push_call = None
-        await self._channel.close()
+        await self._channel.close(None)
 
     async def __aenter__(self) -> AsyncGrpcClient:
         return self
