@@ -14,12 +14,17 @@ async fn python_package_tests_pass_against_the_real_server() {
     let python = root.join(".cache/venv/bin/python");
     let ready = python.is_file()
         && Command::new(&python)
-            .args(["-c", "import crossview_client, pytest, cryptography, grpc_tools"])
+            .args([
+                "-c",
+                "import crossview_client, pytest, cryptography, grpc_tools",
+            ])
             .status()
             .is_ok_and(|s| s.success());
     if !ready {
         // The environment comes from `make setup` (scripts/setup.sh), never from a test.
-        skip("the Python client tests need .cache/venv with clients/python[test]: run `make setup`");
+        skip(
+            "the Python client tests need .cache/venv with clients/python[test]: run `make setup`",
+        );
         return;
     }
     // pytest bounds every wait itself; this outer bound is for a hang (well above the ~1.5
@@ -28,7 +33,14 @@ async fn python_package_tests_pass_against_the_real_server() {
         std::time::Duration::from_secs(600),
         tokio::task::spawn_blocking(move || {
             Command::new(python)
-                .args(["-m", "pytest", "clients/python/tests", "-q", "-p", "no:cacheprovider"])
+                .args([
+                    "-m",
+                    "pytest",
+                    "clients/python/tests",
+                    "-q",
+                    "-p",
+                    "no:cacheprovider",
+                ])
                 .current_dir(&root)
                 .env("CROSSVIEW_BIN", env!("CARGO_BIN_EXE_crossview"))
                 .env("PYTHONDONTWRITEBYTECODE", "1")
