@@ -98,6 +98,43 @@ async fn bad_inputs_get_the_right_status() {
         .await
         .unwrap_err();
     assert_eq!(e.code(), Code::NotFound);
+    // The error's kind travels as status metadata (as `error.kind` over HTTP), and for a bad
+    // argument its field too.
+    let meta = |e: &tonic::Status, key: &str| {
+        e.metadata()
+            .get(key)
+            .map(|v| v.to_str().unwrap().to_string())
+    };
+    assert_eq!(
+        meta(&e, "crossview-error-kind").as_deref(),
+        Some("unknown_scene")
+    );
+    assert_eq!(meta(&e, "crossview-error-field"), None);
+    let mut inverted = batch(0, 1, 1);
+    inverted.detections[0].bbox = Some(pb::BoundingBox {
+        x1: 50.0,
+        y1: 50.0,
+        x2: 10.0,
+        y2: 10.0,
+    });
+    let e = client
+        .associate(pb::AssociateRequest {
+            scene: "lab".into(),
+            frame_id: 1,
+            views: vec![pb::CameraView {
+                camera: "c0".into(),
+                detections: inverted.detections,
+            }],
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
+    assert_eq!(
+        meta(&e, "crossview-error-kind").as_deref(),
+        Some("invalid_argument")
+    );
+    let field = meta(&e, "crossview-error-field").expect("the field of a bad argument");
+    assert!(field.contains("bbox"), "{field} / {}", e.message());
 
     // Oversized body: 413 over HTTP; over gRPC the message-size limit refuses it.
     let big = serde_json::json!({

@@ -74,7 +74,20 @@ def map_rpc_error(e: grpc.RpcError, *, where: str = "") -> CrossviewError:
         return Unavailable(f"{where}{details or 'server unavailable'}", status=name)
     if name == "DEADLINE_EXCEEDED" and "Deadline Exceeded" in details:
         return Timeout(f"{where}no answer within the timeout", status=name)
-    return error_from_grpc(name, details)
+    kind, field = _error_metadata(call.trailing_metadata())
+    return error_from_grpc(name, details, kind, field)
+
+
+def _error_metadata(meta: Any) -> tuple[str, str | None]:
+    """The server's error kind and field from a status's trailing metadata (empty when absent:
+    a server from before they were sent, or an error made by the gRPC library itself)."""
+    kind, field = "", None
+    for key, value in meta or ():
+        if key == "crossview-error-kind":
+            kind = str(value)
+        elif key == "crossview-error-field":
+            field = str(value)
+    return kind, field
 
 
 def _metadata(s: Settings) -> tuple[tuple[str, str], ...]:
@@ -354,7 +367,8 @@ class _AsyncGrpcSource:
         if call.done():
             code = await call.code()
             if code != grpc.StatusCode.OK:
-                raise error_from_grpc(code.name, await call.details() or "")
+                kind, field = _error_metadata(await call.trailing_metadata())
+                raise error_from_grpc(code.name, await call.details() or "", kind, field)
         return cls(call)
 
     async def __anext__(self) -> FrameResult:

@@ -278,8 +278,8 @@ def error_from_http(status: int, body: object, text: str = "") -> CrossviewError
 def kind_from_grpc(code_name: str, message: str) -> str:
     """The server's error kind behind a gRPC status (its code plus its message's wording).
 
-    gRPC statuses carry no kind of their own, so the ambiguous codes are told apart by the
-    message: FAILED_PRECONDITION is ``late`` or ``no_model``, RESOURCE_EXHAUSTED is a full
+    For statuses without the server's ``crossview-error-kind`` metadata (servers before it,
+    errors of the gRPC library itself): the ambiguous codes are told apart by the message: FAILED_PRECONDITION is ``late`` or ``no_model``, RESOURCE_EXHAUSTED is a full
     queue, a lagging or a stalled subscriber, a frame deadline.
     """
     m = message.lower()
@@ -308,12 +308,22 @@ def kind_from_grpc(code_name: str, message: str) -> str:
     return code_name.lower()
 
 
-def error_from_grpc(code_name: str, message: str, kind: str = "") -> CrossviewError:
-    """Maps a gRPC status (or a rejected BatchAck: its code, message and kind) to an exception."""
-    kind = kind or kind_from_grpc(code_name, message)
+def error_from_grpc(
+    code_name: str, message: str, kind: str = "", field: str | None = None
+) -> CrossviewError:
+    """Maps a gRPC status (its code, message and the server's ``crossview-error-kind`` /
+    ``crossview-error-field`` metadata) or a rejected BatchAck (code, message, kind) to an
+    exception. Without a kind from the server, it is read off the code and the message."""
+    if not kind:
+        kind = kind_from_grpc(code_name, message)
+    elif kind == "resource_exhausted" and kind_from_grpc(code_name, message) == "subscriber_lagged":
+        # The server has one kind for every full queue; the wording tells a lagging
+        # subscriber apart.
+        kind = "subscriber_lagged"
     fallback = _BY_GRPC_CODE.get(code_name, ServerError)
-    match = _INVALID_FIELD.match(message)
-    field = match.group(1) if match and code_name == "INVALID_ARGUMENT" else None
+    if field is None:
+        match = _INVALID_FIELD.match(message)
+        field = match.group(1) if match and code_name == "INVALID_ARGUMENT" else None
     if kind in _BY_KIND:
         return error_for_kind(kind, message, field=field, status=code_name)
     return fallback(message, kind=kind, field=field, status=code_name)

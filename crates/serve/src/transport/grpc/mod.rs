@@ -54,8 +54,24 @@ pub(crate) fn status(e: Error) -> Status {
         Error::Unauthenticated(_) => Code::Unauthenticated,
         Error::Unavailable(_) => Code::Unavailable,
     };
-    Status::new(code, crate::echo::truncate_echo(&e.report()))
+    let mut meta = tonic::metadata::MetadataMap::new();
+    meta.insert(
+        KIND_KEY,
+        tonic::metadata::MetadataValue::from_static(e.kind()),
+    );
+    if let Error::Core(Core::InvalidArgument { field, .. }) = &e
+        && let Ok(v) = crate::echo::truncate_echo(field).parse()
+    {
+        meta.insert(FIELD_KEY, v);
+    }
+    Status::with_metadata(code, crate::echo::truncate_echo(&e.report()), meta)
 }
+
+/// Status metadata naming the error's kind (as the HTTP body's `error.kind` and a rejected
+/// ack's `kind`), so a client tells kinds that share a code apart without reading messages.
+pub(crate) const KIND_KEY: &str = "crossview-error-kind";
+/// Status metadata naming the offending field of an `invalid_argument` (when ASCII).
+pub(crate) const FIELD_KEY: &str = "crossview-error-field";
 
 /// Pushes one protobuf batch — or a message that did not decode as one (see [`super::push`])
 /// — and turns the outcome into its acknowledgement. An undecodable message's ack has no
