@@ -16,6 +16,7 @@ mod late_duplicate;
 mod metrics_labels;
 mod model_swap;
 mod ndjson_bounds;
+mod openapi;
 mod partial;
 mod python_client;
 mod record;
