@@ -17,6 +17,7 @@ mod metrics_labels;
 mod model_swap;
 mod ndjson_bounds;
 mod openapi;
+mod openapi_fuzz;
 mod partial;
 mod python_client;
 mod record;

@@ -295,8 +295,11 @@ pub fn openapi_json() -> &'static str {
     static DOC: OnceLock<String> = OnceLock::new();
     DOC.get_or_init(|| {
         let (_, doc) = api_routes().split_for_parts();
+        // utoipa spells the unsigned formats `u-int32`/`u-int64`; the usual names are
+        // `uint32`/`uint64` (a u64 must not be `int64`, which would cap it at 2^63 - 1).
         doc.to_pretty_json()
             .expect("the OpenAPI document serializes")
+            .replace("\"format\": \"u-int", "\"format\": \"uint")
     })
 }
 
