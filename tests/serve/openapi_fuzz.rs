@@ -124,6 +124,8 @@ async fn run_schemathesis(st: &Path, base: &str, doc: &Path, har: &Path) {
         .args(["--suppress-health-check", "all"])
         .args(["--report", "har", "--report-har-path"])
         .arg(har)
+        // Its crash cache (`.schemathesis/`) goes to the temporary directory, not the checkout.
+        .current_dir(doc.parent().expect("the document is in a directory"))
         .env("NO_COLOR", "1")
         .env("SCHEMATHESIS_TELEMETRY", "false");
     let out = guard(
