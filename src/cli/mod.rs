@@ -73,6 +73,9 @@ pub enum Command {
     Demo(demo::DemoArgs),
     /// Each camera's clock offset, estimated from a recording's detections with the model.
     SyncCheck(sync_check::SyncCheckArgs),
+    /// Print the OpenAPI 3.1 description of the HTTP API (what `GET /openapi.json` serves);
+    /// `crossview openapi > docs/openapi.json` regenerates the committed copy.
+    Openapi,
 }
 
 /// Entry point used by `main`.
@@ -90,5 +93,9 @@ pub fn run() -> anyhow::Result<()> {
         Command::Train(args) => train::run(args),
         Command::Demo(args) => demo::run(args),
         Command::SyncCheck(args) => sync_check::run(args),
+        Command::Openapi => {
+            println!("{}", crossview_serve::openapi_json());
+            Ok(())
+        }
     }
 }

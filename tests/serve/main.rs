@@ -16,6 +16,8 @@ mod late_duplicate;
 mod metrics_labels;
 mod model_swap;
 mod ndjson_bounds;
+mod openapi;
+mod openapi_fuzz;
 mod partial;
 mod record;
 mod record_disk;

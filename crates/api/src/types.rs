@@ -1,6 +1,7 @@
 //! Transport-neutral request and result types of the service. Their serde form is the HTTP JSON
 //! API; `grpc.rs` converts them to and from the protobuf messages.
 use serde::{Deserialize, Serialize};
+use utoipa::{IntoParams, ToSchema};
 
 use crossview_core::{CameraSpec, Detection};
 
@@ -8,24 +9,28 @@ use crossview_core::{CameraSpec, Detection};
 ///
 /// Unknown JSON fields are ignored, here as in batches (and as protobuf ignores unknown
 /// fields): one rule for every request body.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct CameraView {
+    /// The camera's name in the scene.
     pub camera: String,
+    /// Its boxes (none: it saw nobody).
     #[serde(default)]
     pub detections: Vec<Detection>,
 }
 
 /// A whole, already synchronized frame (`POST /v1/scenes/{scene}/associate`). Cameras of the
 /// scene absent from `views` count as missing. Unknown fields are ignored (see [`CameraView`]).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct AssociateRequest {
+    /// The frame id echoed in the result (default 0).
     #[serde(default)]
     pub frame_id: u64,
+    /// One entry per reporting camera.
     pub views: Vec<CameraView>,
 }
 
 /// One box of an identity.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct Member {
     /// Camera name.
     pub camera: String,
@@ -36,7 +41,7 @@ pub struct Member {
 }
 
 /// A person seen by one or more cameras in one frame.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct IdentityOut {
     /// Dense, 0-based within the frame.
     pub id: usize,
@@ -44,19 +49,24 @@ pub struct IdentityOut {
     /// follows them (`crossview_core::tracking`); absent on unary results (not tracked).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub track_id: Option<u64>,
+    /// How sure the association is of this identity, in `[0, 1]`.
     pub confidence: f32,
+    /// The boxes of this person, at most one per camera.
     pub members: Vec<Member>,
 }
 
 /// The association of one frame, as published to subscribers and returned by `associate`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct FrameResult {
+    /// The scene.
     pub scene: String,
+    /// The frame.
     pub frame_id: u64,
     /// True when every camera reported.
     pub complete: bool,
     /// Cameras that did not report.
     pub missing_cameras: Vec<String>,
+    /// The people of the frame.
     pub identities: Vec<IdentityOut>,
     /// Server-side latency: first batch (or request) to result, in milliseconds.
     pub latency_ms: f64,
@@ -78,7 +88,7 @@ pub struct FrameResult {
 }
 
 /// What became of a published frame.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum ResultStatus {
     /// Associated by the scene's model: `identities` holds the result.
@@ -93,7 +103,7 @@ pub enum ResultStatus {
 
 /// What a reload (`SIGHUP`, `POST /v1/admin/reload`, gRPC `Reload`) did to one scene's model
 /// file.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
 pub struct ReloadOutcome {
     /// The scene.
     pub scene: String,
@@ -108,20 +118,28 @@ pub struct ReloadOutcome {
 }
 
 /// The acknowledgement of an accepted batch.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct BatchAck {
+    /// The scene.
     pub scene: String,
+    /// The batch's camera.
     pub camera: String,
+    /// The batch's frame id.
     pub frame_id: u64,
+    /// Always true (a refused batch gets an error instead).
     pub accepted: bool,
 }
 
 /// What a client may know about a loaded scene.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct SceneDescription {
+    /// The scene's name.
     pub name: String,
+    /// Its cameras, in camera-index order.
     pub cameras: Vec<CameraSpec>,
+    /// The association threshold of the serving model.
     pub threshold: f32,
+    /// The model's appearance weight.
     pub alpha: f32,
     /// The serving model's version (`VERSION@HASH`); absent while the scene has no model.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -129,6 +147,7 @@ pub struct SceneDescription {
     /// Appearance vector length fixed by the first accepted batch with vectors; `None` while
     /// unknown.
     pub appearance_length: Option<usize>,
+    /// How long a frame waits for its missing cameras, in milliseconds.
     pub sync_timeout_ms: u64,
     /// The live clock watch's latest estimate of each camera's clock offset; absent while the
     /// watch is off or has not yet seen enough frames.
@@ -140,7 +159,7 @@ pub struct SceneDescription {
 /// --clock-watch-window`), measured on the frames as the server groups them: after the
 /// offsets declared in the scene (`@±N`), so a camera in sync, or one whose declared offset
 /// is right, shows 0.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct ClockEstimate {
     /// Frames the estimate was computed from (the most recent ones).
     pub frames: usize,
@@ -155,7 +174,7 @@ pub struct ClockEstimate {
 }
 
 /// One camera's live clock offset.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct CameraClock {
     /// Camera name.
     pub camera: String,
@@ -169,7 +188,8 @@ pub struct CameraClock {
 }
 
 /// The query of `GET /v1/scenes/{scene}/events`. Unknown parameters are ignored.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
 pub struct EventsQuery {
     /// `?boxes=true`: every event is a [`FrameWithBoxes`] (the result plus each reporting
     /// camera's boxes) instead of a bare [`FrameResult`]. Off by default.
@@ -180,7 +200,7 @@ pub struct EventsQuery {
 /// One camera's boxes in a published frame, as the server associated them (after clipping to
 /// the image): `boxes[i]` is the box that a [`Member`] with this camera and `index == i`
 /// points at.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct CameraBoxes {
     /// Camera name.
     pub camera: String,
@@ -194,7 +214,7 @@ pub struct CameraBoxes {
 /// data of `GET /v1/scenes/{scene}/events?boxes=true` (what a live viewer draws). Its JSON is
 /// every [`FrameResult`] field unchanged plus `views`: one entry per camera that reported the
 /// frame, in scene order (a camera in `missing_cameras` has none).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct FrameWithBoxes {
     /// The result, exactly as published without `?boxes`.
     #[serde(flatten)]
@@ -202,4 +222,83 @@ pub struct FrameWithBoxes {
     /// Each reporting camera's boxes.
     #[serde(default)]
     pub views: Vec<CameraBoxes>,
+}
+
+/// The body of every HTTP error response: `{"error": {"kind", "message", "field"}}`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+pub struct ErrorBody {
+    /// What went wrong.
+    pub error: ErrorDetail,
+}
+
+/// One error: a stable kind, a message for people and the offending field, if any.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+pub struct ErrorDetail {
+    /// A short, stable label (`invalid_argument`, `unknown_scene`, `unauthenticated`, ...: the
+    /// labels of `crossview_errors_total`).
+    pub kind: String,
+    /// What went wrong, phrased for a person (long echoes of the input are truncated).
+    pub message: String,
+    /// The request field at fault (`body`, `views[0].detections[2].bbox`, `content-type`, ...),
+    /// or null.
+    pub field: Option<String>,
+}
+
+/// `GET /v1/scenes`: every loaded scene.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct SceneList {
+    /// The scenes, by name.
+    pub scenes: Vec<SceneDescription>,
+}
+
+/// `POST /v1/admin/reload`: what the reload did to each scene's model file.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+pub struct ReloadReport {
+    /// One outcome per model file (none when the server has no files to reload).
+    pub reloads: Vec<ReloadOutcome>,
+}
+
+/// The answer to a JSON Lines body of `POST /v1/scenes/{scene}/batches`, streamed as the
+/// lines are pushed: one result per batch line, then the totals.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct LinesReport {
+    /// One entry per batch line (blank lines and a recording's scene header are skipped).
+    pub results: Vec<LineResult>,
+    /// Lines accepted.
+    pub accepted: usize,
+    /// Lines rejected.
+    pub rejected: usize,
+    /// Set when the server stopped early (too many rejected lines): the first line not read.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stopped_at_line: Option<usize>,
+    /// Set with `stopped_at_line`: why the rest of the body was not read.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stopped: Option<String>,
+}
+
+/// What became of one line of a JSON Lines body.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct LineResult {
+    /// 1-based line number in the body.
+    pub line: usize,
+    /// Whether the batch was accepted.
+    pub accepted: bool,
+    /// The accepted batch's camera.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera: Option<String>,
+    /// The accepted batch's frame id.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame_id: Option<u64>,
+    /// Why the line was rejected.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<LineError>,
+}
+
+/// Why one line of a JSON Lines body was rejected.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+pub struct LineError {
+    /// The error's kind (as in [`ErrorDetail::kind`]).
+    pub kind: String,
+    /// What went wrong.
+    pub message: String,
 }

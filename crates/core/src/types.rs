@@ -12,6 +12,7 @@ pub fn frame_less_offset(frame_id: u64, offset: i64) -> Option<u64> {
 
 /// One camera of a scene: its name, image size in pixels and clock offset.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct CameraSpec {
     pub name: String,
     pub width: u32,
@@ -20,6 +21,7 @@ pub struct CameraSpec {
     /// `N` shows what the others show in frame `N − offset`, so its batches are grouped into
     /// that frame. 0 (the default, left out of JSON) for a camera in sync.
     #[serde(default, skip_serializing_if = "is_zero")]
+    #[cfg_attr(feature = "openapi", schema(default = 0))]
     pub offset: i64,
 }
 
@@ -127,10 +129,18 @@ fn is_default_score(s: &f32) -> bool {
 
 /// One detected box. `bbox` is `[x1, y1, x2, y2]` in pixels of its camera's image.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct Detection {
+    /// `[x1, y1, x2, y2]` in pixels of the camera's image, finite, `x2 > x1` and `y2 > y1`;
+    /// a box overlapping the image's edge is clipped to it, one entirely outside is refused.
+    #[cfg_attr(feature = "openapi", schema(min_items = 4, max_items = 4))]
     pub bbox: [f32; 4],
     /// Detector confidence, default 1.
     #[serde(default = "default_score", skip_serializing_if = "is_default_score")]
+    #[cfg_attr(
+        feature = "openapi",
+        schema(default = 1.0, minimum = 0.0, maximum = 1.0)
+    )]
     pub score: f32,
     /// Ground-truth identity (evaluation only; never used by training or inference).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -255,9 +265,13 @@ pub struct BatchLine<'a> {
 
 /// One camera's detections for one frame: a line of a recording, or one pushed batch.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct Batch {
+    /// The camera's name in its scene.
     pub camera: String,
+    /// The camera's frame id (its own clock; see [`CameraSpec::offset`]).
     pub frame_id: u64,
+    /// The boxes the camera saw (none: it saw nobody).
     pub detections: Vec<Detection>,
 }
 

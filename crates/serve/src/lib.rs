@@ -57,6 +57,7 @@ pub use record::RecordConfig;
 pub use registry::SceneInfo;
 pub use scene::Scene;
 pub use service::Service;
+pub use transport::http::routes::openapi_json;
 pub use transport::kafka::{KafkaConfig, ValueFormat};
 
 use crossview_core::Encoder;

@@ -44,7 +44,17 @@ async fn fallback(req: Request) -> Response {
         tonic::Status::unimplemented(format!("no such method {}", req.uri().path()))
             .into_http::<axum::body::Body>()
     } else {
-        (::http::StatusCode::NOT_FOUND, "not found").into_response()
+        let body = crossview_api::types::ErrorBody {
+            error: crossview_api::types::ErrorDetail {
+                kind: "not_found".into(),
+                message: format!(
+                    "no such route: {}",
+                    crate::echo::truncate_echo(req.uri().path())
+                ),
+                field: None,
+            },
+        };
+        (::http::StatusCode::NOT_FOUND, axum::Json(body)).into_response()
     }
 }
 
