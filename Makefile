@@ -6,8 +6,8 @@ export ORT_DYLIB_PATH
 .PHONY: setup build test bench lint fmt demo
 
 ## setup: everything the build and the tests need beyond Rust, from PyPI into .cache/ (once):
-## the ONNX Runtime library and the Python venv (the gRPC client's grpcio, and schemathesis for
-## the HTTP API's OpenAPI fuzz test; tests never install anything)
+## the ONNX Runtime library and the Python venv (the client package clients/python with its test
+## extra, and schemathesis for the HTTP API's OpenAPI fuzz test; tests never install anything)
 setup:
 	@bash scripts/setup.sh
 
