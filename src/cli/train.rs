@@ -74,7 +74,8 @@ pub struct TrainArgs {
     /// [ours] Peak learning rate of the self-training stage.
     #[arg(long, default_value_t = 3e-4)]
     pub self_train_lr: f64,
-    /// [ours] Smallest identity confidence that becomes a pseudo-label.
+    /// [ours] An identity becomes a pseudo-label when every pair of its members has at least
+    /// this calibrated probability P(same person | distance).
     #[arg(long, default_value_t = 0.5)]
     pub pseudo_confidence: f32,
     /// [ours] Fewest cameras a pseudo-labelled identity must span.
