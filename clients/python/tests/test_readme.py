@@ -113,3 +113,35 @@ def test_stream_recording_replays_camera_by_camera(tmp_path: Path) -> None:
                 assert got == list(range(6))
     finally:
         server.stop()
+
+
+def test_async_stream_recording_replays_frame_by_frame(tmp_path: Path) -> None:
+    """The asyncio clients replay the same way (one frame's batches at a time, paced here)."""
+    import asyncio
+
+    import crossview_client as cv
+
+    server = start_server("--sync-timeout", "60s")
+    try:
+        rec = tmp_path / "demo.jsonl"
+        subprocess.run(
+            [crossview_bin(), "simulate", "--preset", "square4", "--seed", "6", "--frames", "6",
+             "--out", str(rec)], check=True, env=server_env(), capture_output=True, timeout=60,
+        )
+
+        async def main() -> None:
+            for transport, late in (("grpc", False), ("http", True)):
+                async with cv.connect_async(server.addr, transport) as client:  # type: ignore[arg-type]
+                    sub = await client.subscribe("demo")
+                    summary = await client.stream_recording(rec, scene="demo", fps=50)
+                    if late:  # the same frames again: every batch is now late
+                        assert summary.accepted == 0 and summary.rejected == {"late": 24}
+                        continue
+                    assert (summary.accepted, summary.rejected_total, summary.frames) == (24, 0, 6)
+                    async with sub:
+                        got = [(await sub.__anext__()).frame_id for _ in range(6)]
+                    assert got == list(range(6))
+
+        asyncio.run(asyncio.wait_for(main(), 90))
+    finally:
+        server.stop()

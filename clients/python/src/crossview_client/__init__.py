@@ -20,7 +20,7 @@ from __future__ import annotations
 from typing import Any, Literal
 
 from . import errors
-from ._base import SyncClient
+from ._base import AsyncClient, SyncClient
 from ._grpc import AsyncGrpcClient, GrpcClient
 from ._http import AsyncHttpClient, HttpClient
 from ._subscription import AsyncSubscription, Subscription
@@ -64,6 +64,7 @@ __all__ = [
     "connect",
     "connect_async",
     "SyncClient",
+    "AsyncClient",
     "GrpcClient",
     "HttpClient",
     "AsyncGrpcClient",

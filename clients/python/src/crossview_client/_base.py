@@ -3,6 +3,7 @@ batches, raising on refused pushes, replaying recordings."""
 
 from __future__ import annotations
 
+import asyncio
 import os
 import time
 from abc import ABC, abstractmethod
@@ -166,3 +167,74 @@ class SyncClient(ABC):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class AsyncClient(ABC):
+    """The asyncio API, implemented by ``AsyncGrpcClient`` and ``AsyncHttpClient``: the same
+    methods as :class:`SyncClient`, as coroutines."""
+
+    @abstractmethod
+    async def push_many(
+        self, batches: Iterable[Batch], *, timeout: float | None = None
+    ) -> list[PushAck]:
+        """Pushes many batches, pipelined, in order; one ack each (see SyncClient.push_many)."""
+
+    @abstractmethod
+    async def close(self) -> None:
+        """Closes the connection(s)."""
+
+    async def push(
+        self,
+        scene: str,
+        camera: str,
+        frame_id: int,
+        boxes: Boxes,
+        *,
+        appearance: npt.ArrayLike | Sequence[Sequence[float]] | None = None,
+        timeout: float | None = None,
+    ) -> PushAck:
+        """Pushes one camera's boxes for one frame; a refused batch raises (see SyncClient.push)."""
+        (ack,) = await self.push_many(
+            [make_batch(scene, camera, frame_id, boxes, appearance)], timeout=timeout
+        )
+        if ack.error is not None:
+            raise ack.error
+        return ack
+
+    async def push_frame(
+        self,
+        scene: str,
+        frame_id: int,
+        views: Mapping[str, Boxes],
+        *,
+        timeout: float | None = None,
+    ) -> list[PushAck]:
+        """Pushes every camera's boxes of one frame, pipelined; returns the acks."""
+        return await self.push_many(frame_batches(scene, frame_id, views), timeout=timeout)
+
+    async def stream_recording(
+        self,
+        path: "os.PathLike[str] | str",
+        *,
+        scene: str | None = None,
+        fps: float | None = None,
+        timeout: float | None = None,
+    ) -> ReplaySummary:
+        """Replays a SPEC §7 recording camera by camera (see SyncClient.stream_recording), one
+        frame's batches at a time, so memory stays bounded whatever the recording's length."""
+        rec = open_recording(path)
+        summary = ReplaySummary()
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+        for n, frame in enumerate(by_frame(count_frames(rec.batches(scene), summary))):
+            if fps:
+                await asyncio.sleep(max(0.0, start + n / fps - loop.time()))
+            summarize(summary, await self.push_many(frame, timeout=timeout))
+        summary.torn_lines = rec.torn_lines
+        return summary
+
+    async def __aenter__(self) -> Any:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()

@@ -20,7 +20,7 @@ from typing import Any, cast
 import grpc
 import grpc.aio
 
-from ._base import SyncClient, frame_batches, make_batch, summarize
+from ._base import AsyncClient, SyncClient, frame_batches
 from ._config import DEFAULT_RECONNECT_TIMEOUT, DEFAULT_TIMEOUT, Settings, make_settings
 from ._convert import (
     ack_from_pb,
@@ -34,7 +34,6 @@ from ._pb import crossview_pb2 as pb
 from ._pb import crossview_pb2_grpc as rpc
 from ._subscription import LOST_HINT, AsyncSubscription, Subscription
 from .errors import CrossviewError, Timeout, Unavailable, error_from_grpc
-from .recording import ReplaySummary, open_recording
 from .types import Batch, Boxes, FrameResult, PushAck, ReloadOutcome, Scene
 
 __all__ = ["GrpcClient", "AsyncGrpcClient"]
@@ -444,7 +443,7 @@ class _AsyncPushCall:
         self.fail(Unavailable("client closed"))
 
 
-class AsyncGrpcClient:
+class AsyncGrpcClient(AsyncClient):
     """An asyncio crossview client over gRPC (``grpc.aio``); same arguments and methods as
     :class:`GrpcClient`, as coroutines. Use it from one event loop."""
 
@@ -554,56 +553,6 @@ class AsyncGrpcClient:
             await settle_oldest()
         return acks
 
-    async def push(
-        self,
-        scene: str,
-        camera: str,
-        frame_id: int,
-        boxes: Boxes,
-        *,
-        appearance: Any = None,
-        timeout: float | None = None,
-    ) -> PushAck:
-        """Pushes one camera's boxes for one frame; a refused batch raises (see GrpcClient.push)."""
-        (ack,) = await self.push_many(
-            [make_batch(scene, camera, frame_id, boxes, appearance)], timeout=timeout
-        )
-        if ack.error is not None:
-            raise ack.error
-        return ack
-
-    async def push_frame(
-        self, scene: str, frame_id: int, views: Mapping[str, Boxes], *, timeout: float | None = None
-    ) -> list[PushAck]:
-        """Pushes every camera's boxes of one frame, pipelined; returns the acks."""
-        return await self.push_many(frame_batches(scene, frame_id, views), timeout=timeout)
-
-    async def stream_recording(
-        self, path: Any, *, scene: str | None = None, fps: float | None = None,
-        timeout: float | None = None,
-    ) -> ReplaySummary:
-        """Replays a SPEC §7 recording camera by camera (see GrpcClient.stream_recording)."""
-        rec = open_recording(path)
-        summary = ReplaySummary()
-        last: int | None = None
-        loop = asyncio.get_running_loop()
-        start = loop.time()
-        batches: list[Batch] = []
-        for b in rec.batches(scene):
-            if b.frame_id != last:
-                if batches:
-                    summarize(summary, await self.push_many(batches, timeout=timeout))
-                    batches = []
-                last = b.frame_id
-                summary.frames += 1
-                if fps:
-                    await asyncio.sleep(max(0.0, start + (summary.frames - 1) / fps - loop.time()))
-            batches.append(b)
-        if batches:
-            summarize(summary, await self.push_many(batches, timeout=timeout))
-        summary.torn_lines = rec.torn_lines
-        return summary
-
     async def subscribe(
         self,
         scene: str,
@@ -629,10 +578,3 @@ class AsyncGrpcClient:
             await self._push_call.close()
             self._push_call = None
         await self._channel.close(None)
-
-    async def __aenter__(self) -> AsyncGrpcClient:
-        return self
-
-    async def __aexit__(self, *exc: object) -> None:
-        await self.close()
-

@@ -16,7 +16,7 @@ from typing import Any
 
 import httpx
 
-from ._base import SyncClient, frame_batches, make_batch, summarize
+from ._base import AsyncClient, SyncClient, frame_batches
 from ._config import (
     DEFAULT_RECONNECT_TIMEOUT,
     DEFAULT_TIMEOUT,
@@ -35,7 +35,6 @@ from .errors import (
     error_for_kind,
     error_from_http,
 )
-from .recording import ReplaySummary, open_recording
 from .types import Batch, Boxes, FrameResult, PushAck, ReloadOutcome, Scene
 
 __all__ = ["HttpClient", "AsyncHttpClient"]
@@ -380,7 +379,7 @@ class _AsyncHttpSource:
         await self._resp.aclose()
 
 
-class AsyncHttpClient:
+class AsyncHttpClient(AsyncClient):
     """An asyncio crossview client over HTTP/JSON (``httpx.AsyncClient``); same arguments and
     methods as :class:`HttpClient`, as coroutines."""
 
@@ -474,50 +473,6 @@ class AsyncHttpClient:
             acks.extend(_acks_from_ndjson(chunk, _check(resp)))
         return acks
 
-    async def push(
-        self, scene: str, camera: str, frame_id: int, boxes: Boxes, *,
-        appearance: Any = None, timeout: float | None = None,
-    ) -> PushAck:
-        """Pushes one camera's boxes for one frame; a refused batch raises."""
-        (ack,) = await self.push_many([make_batch(scene, camera, frame_id, boxes, appearance)], timeout=timeout)
-        if ack.error is not None:
-            raise ack.error
-        return ack
-
-    async def push_frame(
-        self, scene: str, frame_id: int, views: Mapping[str, Boxes], *, timeout: float | None = None
-    ) -> list[PushAck]:
-        """Pushes every camera's boxes of one frame in one request; returns the acks."""
-        return await self.push_many(frame_batches(scene, frame_id, views), timeout=timeout)
-
-    async def stream_recording(
-        self, path: Any, *, scene: str | None = None, fps: float | None = None,
-        timeout: float | None = None,
-    ) -> ReplaySummary:
-        """Replays a SPEC §7 recording camera by camera (see HttpClient.stream_recording)."""
-        import asyncio
-
-        rec = open_recording(path)
-        summary = ReplaySummary()
-        last: int | None = None
-        loop = asyncio.get_running_loop()
-        start = loop.time()
-        batches: list[Batch] = []
-        for b in rec.batches(scene):
-            if b.frame_id != last:
-                if batches and fps:
-                    summarize(summary, await self.push_many(batches, timeout=timeout))
-                    batches = []
-                last = b.frame_id
-                summary.frames += 1
-                if fps:
-                    await asyncio.sleep(max(0.0, start + (summary.frames - 1) / fps - loop.time()))
-            batches.append(b)
-        if batches:
-            summarize(summary, await self.push_many(batches, timeout=timeout))
-        summary.torn_lines = rec.torn_lines
-        return summary
-
     async def subscribe(
         self,
         scene: str,
@@ -537,9 +492,3 @@ class AsyncHttpClient:
     async def close(self) -> None:
         """Closes the connection pool."""
         await self._http.aclose()
-
-    async def __aenter__(self) -> AsyncHttpClient:
-        return self
-
-    async def __aexit__(self, *exc: object) -> None:
-        await self.close()
