@@ -215,7 +215,10 @@
           received();
           latest = ev.data;
         } else if (ev.event === 'error') {
-          showError('server: ' + ev.data);
+          // {"error": {"kind", "message", "field"}}, as every HTTP error body.
+          let message = ev.data;
+          try { message = JSON.parse(ev.data).error.message || ev.data; } catch (_) { /* text */ }
+          showError('server: ' + message);
         }
       }
       if (buffer.length > MAX_BUFFER_CHARS) throw new Error('event too large');

@@ -154,6 +154,23 @@ def _associate_body(scene: str, frame_id: int, views: Mapping[str, Boxes]) -> di
     }
 
 
+def _sse_error(data: str) -> CrossviewError:
+    """The exception of an SSE ``error`` event: its data is the server's error body
+    ``{"error": {"kind", "message", "field"}}`` (plain text from servers before it)."""
+    kind, message = "", data
+    try:
+        err = json.loads(data)["error"]
+        kind, message = str(err.get("kind") or ""), str(err.get("message") or data)
+    except (ValueError, TypeError, KeyError, AttributeError):
+        pass
+    lower = message.lower()
+    if "fell" in lower and "behind" in lower:
+        return SubscriberLagged(message, status=200)
+    if not kind:
+        kind = "resource_exhausted" if "exhausted" in lower else "internal"
+    return error_for_kind(kind, message)
+
+
 class _SseParser:
     """Server-Sent Events, line by line: ``feed`` returns a frame result for each ``frame``
     event, raises for an ``error`` event (the server dropped this subscriber)."""
@@ -170,10 +187,7 @@ class _SseParser:
             if event == "frame" and data:
                 return result_from_json(json.loads(data))
             if event == "error":
-                lower = data.lower()
-                if "fell" in lower and "behind" in lower:
-                    raise SubscriberLagged(data, status=200)
-                raise error_for_kind("resource_exhausted" if "exhausted" in lower else "internal", data)
+                raise _sse_error(data)
             return None
         if line.startswith(":"):
             return None  # keep-alive comment

@@ -58,25 +58,27 @@ impl From<Error> for HttpError {
     }
 }
 
+/// The JSON body of an error, `{"error": {"kind", "message", "field"}}`: of every HTTP error
+/// response, and the data of an SSE `error` event.
+pub(crate) fn error_body(e: &Error) -> ErrorBody {
+    let field = match e {
+        Error::Core(crossview_core::Error::InvalidArgument { field, .. }) => Some(field.clone()),
+        _ => None,
+    };
+    ErrorBody {
+        error: ErrorDetail {
+            kind: e.kind().to_string(),
+            message: crate::echo::truncate_echo(&e.report()).into_owned(),
+            field,
+        },
+    }
+}
+
 impl IntoResponse for HttpError {
     fn into_response(self) -> Response {
         let HttpError(e) = self;
         let status = status_of(&e);
-        let field = match &e {
-            Error::Core(crossview_core::Error::InvalidArgument { field, .. }) => {
-                Some(field.clone())
-            }
-            _ => None,
-        };
-        let message = crate::echo::truncate_echo(&e.report()).into_owned();
-        let body = ErrorBody {
-            error: ErrorDetail {
-                kind: e.kind().to_string(),
-                message,
-                field,
-            },
-        };
-        let mut resp = (status, Json(body)).into_response();
+        let mut resp = (status, Json(error_body(&e))).into_response();
         if status == StatusCode::UNAUTHORIZED {
             resp.headers_mut().insert(
                 http::header::WWW_AUTHENTICATE,

@@ -238,7 +238,7 @@ async fn push_batch(
         (status = 200, description = "An endless Server-Sent-Events stream: one `event: frame` \
             (`id:` the frame id) per published frame, its data a `FrameResult` (with \
             `?boxes=true` a `FrameWithBoxes`); a subscriber that falls behind gets one \
-            `event: error` and the stream ends", body = String,
+            `event: error` (its data an `ErrorBody`) and the stream ends", body = String,
             content_type = "text/event-stream"),
         (status = 401, description = "Missing or wrong API key", body = ErrorBody),
         (status = 404, description = "No such scene", body = ErrorBody),
@@ -266,7 +266,10 @@ async fn events(
                 // Encoded once per frame, whatever the number of subscribers.
                 frame.data(r.json(query.boxes))
             }
-            Err(e) => Event::default().event("error").data(e.to_string()),
+            Err(e) => Event::default()
+                .event("error")
+                .json_data(super::error_body(&e))
+                .unwrap_or_else(|_| Event::default().event("error").data(e.kind())),
         })
     });
     Ok(Sse::new(events)
