@@ -19,6 +19,25 @@ async fn push_one(
     guard("ack", acks.next()).await.unwrap().unwrap()
 }
 
+/// The error of a unary `Associate` of frame 1 of scene `lab` with `detections` from camera
+/// `c0` alone.
+async fn associate_error(
+    client: &mut pb::association_client::AssociationClient<tonic::transport::Channel>,
+    detections: Vec<pb::Detection>,
+) -> tonic::Status {
+    client
+        .associate(pb::AssociateRequest {
+            scene: "lab".into(),
+            frame_id: 1,
+            views: vec![pb::CameraView {
+                camera: "c0".into(),
+                detections,
+            }],
+        })
+        .await
+        .unwrap_err()
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_inputs_get_the_right_status() {
     let server = start(|c| {
@@ -117,17 +136,7 @@ async fn bad_inputs_get_the_right_status() {
         x2: 10.0,
         y2: 10.0,
     });
-    let e = client
-        .associate(pb::AssociateRequest {
-            scene: "lab".into(),
-            frame_id: 1,
-            views: vec![pb::CameraView {
-                camera: "c0".into(),
-                detections: inverted.detections,
-            }],
-        })
-        .await
-        .unwrap_err();
+    let e = associate_error(&mut client, inverted.detections).await;
     assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
     assert_eq!(
         meta(&e, "crossview-error-kind").as_deref(),
@@ -147,17 +156,7 @@ async fn bad_inputs_get_the_right_status() {
     for d in &mut b.detections {
         d.appearance = vec![0.5; 512];
     }
-    let e = client
-        .associate(pb::AssociateRequest {
-            scene: "lab".into(),
-            frame_id: 1,
-            views: vec![pb::CameraView {
-                camera: "c0".into(),
-                detections: b.detections,
-            }],
-        })
-        .await
-        .unwrap_err();
+    let e = associate_error(&mut client, b.detections).await;
     assert_eq!(e.code(), Code::OutOfRange, "{e:?}");
 
     // Too many detections in one batch.

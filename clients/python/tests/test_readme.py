@@ -88,16 +88,22 @@ def test_examples_push_and_follow(tmp_path: Path) -> None:
         server.stop()
 
 
+def simulated_recording(tmp_path: Path, seed: int) -> Path:
+    """A 6-frame recording of the simulator's square4 scene (the demo model's 4 cameras)."""
+    rec = tmp_path / "demo.jsonl"
+    subprocess.run(
+        [crossview_bin(), "simulate", "--preset", "square4", "--seed", str(seed), "--frames", "6",
+         "--out", str(rec)], check=True, env=server_env(), capture_output=True, timeout=60,
+    )
+    return rec
+
+
 def test_stream_recording_replays_camera_by_camera(tmp_path: Path) -> None:
     import crossview_client as cv
 
     server = start_server("--sync-timeout", "60s")
     try:
-        rec = tmp_path / "demo.jsonl"
-        subprocess.run(
-            [crossview_bin(), "simulate", "--preset", "square4", "--seed", "5", "--frames", "6",
-             "--out", str(rec)], check=True, env=server_env(), capture_output=True, timeout=60,
-        )
+        rec = simulated_recording(tmp_path, seed=5)
         with rec.open("a") as f:
             f.write('{"camera": "cam0", "frame_id": 99, "detec')  # a torn last line
         for transport, offset in (("grpc", 0), ("http", 1)):
@@ -123,11 +129,7 @@ def test_async_stream_recording_replays_frame_by_frame(tmp_path: Path) -> None:
 
     server = start_server("--sync-timeout", "60s")
     try:
-        rec = tmp_path / "demo.jsonl"
-        subprocess.run(
-            [crossview_bin(), "simulate", "--preset", "square4", "--seed", "6", "--frames", "6",
-             "--out", str(rec)], check=True, env=server_env(), capture_output=True, timeout=60,
-        )
+        rec = simulated_recording(tmp_path, seed=6)
 
         async def main() -> None:
             for transport, late in (("grpc", False), ("http", True)):

@@ -63,6 +63,13 @@ def _credentials(s: Settings) -> grpc.ChannelCredentials:
     return grpc.ssl_channel_credentials(root_certificates=s.ca_cert)
 
 
+def _open_channel(module: Any, s: Settings, extra: Iterable[tuple[str, Any]]) -> Any:
+    """A channel of ``module`` (``grpc`` or ``grpc.aio``) to ``s.target``: TLS when ``s.tls``."""
+    if s.tls:
+        return module.secure_channel(s.target, _credentials(s), options=_options(s, extra))
+    return module.insecure_channel(s.target, options=_options(s, extra))
+
+
 def map_rpc_error(e: grpc.RpcError, *, where: str = "") -> CrossviewError:
     """A failed gRPC call as the package's exception (connection failures as Unavailable)."""
     call = cast(grpc.Call, e)
@@ -193,10 +200,7 @@ class GrpcClient(SyncClient):
             tls_server_name=tls_server_name, timeout=timeout,
         )
         s = self.settings
-        if s.tls:
-            self._channel = grpc.secure_channel(s.target, _credentials(s), options=_options(s, channel_options))
-        else:
-            self._channel = grpc.insecure_channel(s.target, options=_options(s, channel_options))
+        self._channel: grpc.Channel = _open_channel(grpc, s, channel_options)
         self._stub = rpc.AssociationStub(self._channel)  # type: ignore[no-untyped-call]
         self._health = self._channel.unary_unary(
             "/grpc.health.v1.Health/Check",
@@ -464,10 +468,7 @@ class AsyncGrpcClient(AsyncClient):
             tls_server_name=tls_server_name, timeout=timeout,
         )
         s = self.settings
-        if s.tls:
-            self._channel = grpc.aio.secure_channel(s.target, _credentials(s), options=_options(s, channel_options))
-        else:
-            self._channel = grpc.aio.insecure_channel(s.target, options=_options(s, channel_options))
+        self._channel: grpc.aio.Channel = _open_channel(grpc.aio, s, channel_options)
         self._stub = rpc.AssociationStub(self._channel)  # type: ignore[no-untyped-call]
         self._md = _metadata(s)
         self._max_in_flight = max(1, max_in_flight)

@@ -61,6 +61,16 @@ def _check_settings(s: Settings) -> Settings:
     return s
 
 
+def _client_options(s: Settings) -> dict[str, Any]:
+    """The ``httpx.Client`` / ``httpx.AsyncClient`` arguments of a client with settings ``s``
+    (checked for HTTP), apart from its transport."""
+    _check_settings(s)
+    return {
+        "base_url": s.base_url, "headers": _headers(s), "verify": _verify(s),
+        "timeout": httpx.Timeout(s.timeout), "trust_env": False,
+    }
+
+
 def _headers(s: Settings) -> dict[str, str]:
     h = {"accept": "application/json"}
     if s.api_key:
@@ -230,11 +240,7 @@ class HttpClient(SyncClient):
             address, api_key=api_key, tls=tls, ca_cert=ca_cert,
             tls_server_name=tls_server_name, timeout=timeout,
         )
-        s = _check_settings(self.settings)
-        self._http = httpx.Client(
-            base_url=s.base_url, headers=_headers(s), verify=_verify(s),
-            timeout=httpx.Timeout(s.timeout), trust_env=False, transport=http_transport,
-        )
+        self._http = httpx.Client(**_client_options(self.settings), transport=http_transport)
 
     def _t(self, timeout: float | None) -> httpx.Timeout:
         return httpx.Timeout(self.settings.timeout if timeout is None else timeout)
@@ -412,11 +418,7 @@ class AsyncHttpClient(AsyncClient):
             address, api_key=api_key, tls=tls, ca_cert=ca_cert,
             tls_server_name=tls_server_name, timeout=timeout,
         )
-        s = _check_settings(self.settings)
-        self._http = httpx.AsyncClient(
-            base_url=s.base_url, headers=_headers(s), verify=_verify(s),
-            timeout=httpx.Timeout(s.timeout), trust_env=False, transport=http_transport,
-        )
+        self._http = httpx.AsyncClient(**_client_options(self.settings), transport=http_transport)
 
     def _t(self, timeout: float | None) -> httpx.Timeout:
         return httpx.Timeout(self.settings.timeout if timeout is None else timeout)
