@@ -12,7 +12,7 @@ cargo build --release -p crossview -p crossview-bench --bin crossview --bin iden
 B=target/release/crossview
 S=target/release/identity_sweep
 GT=${WILDTRACK_GT:-../shared/data/wildtrack/annotations_positions}
-METHODS="clustering:0.4:0.125 union-find:0.5:0.3"
+METHODS="clustering:0.35:0.125 union-find:0.5:0.3"
 for split in train val; do
   $B import wildtrack-gt --dir "$GT" --split $split --out "$OUT/$split.jsonl"
   $S models/wildtrack.onnx "$OUT/$split.jsonl" --spread $METHODS > "$OUT/wildtrack_$split.md"

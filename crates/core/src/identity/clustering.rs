@@ -1,6 +1,7 @@
 //! Greedy additive clustering of the evidence: the two clusters with the largest total weight
-//! between them merge while it is positive and their cameras are disjoint (the parent module's
-//! documentation), with a max-heap of versioned candidates.
+//! between them merge while it is positive, their cameras are disjoint and no pair of their
+//! boxes is vetoed ([`VETO`]; the parent module's documentation), with a max-heap of versioned
+//! candidates.
 use std::collections::BinaryHeap;
 
 use super::evidence::{Evidence, NONE};
@@ -46,6 +47,12 @@ fn order_key(w: f32) -> u32 {
         bits | 1 << 31
     }
 }
+
+/// The veto, as a share of the link threshold `t`: two clusters never merge while one pair of
+/// their boxes weighs below `−VETO · t` (complete linkage against a clear contradiction, which
+/// a sum over many weak links would otherwise outvote). Chosen from {0, ¼, ½} on the
+/// WILDTRACK training frames (BENCHMARKS.md, "Identities").
+const VETO: f32 = 0.25;
 
 /// End of a member list.
 const END: usize = usize::MAX;
@@ -147,15 +154,21 @@ impl Clustering<'_> {
         std::iter::successors(Some(r), |&i| Some(self.next[i]).filter(|&j| j != END))
     }
 
-    /// Total weight between clusters `r` and `s`.
-    fn weight(&self, r: usize, s: usize) -> f32 {
+    /// Total weight between clusters `r` and `s`, or `None` when one pair of their boxes
+    /// (with evidence) weighs below the veto `−VETO · t`.
+    fn weight(&self, r: usize, s: usize) -> Option<f32> {
+        let floor = -VETO * self.ev.link_threshold();
         let mut w = 0f32;
         for u in self.members(r) {
             for v in self.members(s) {
-                w += self.ev.pair_weight(u, v);
+                let x = self.ev.pair_weight(u, v);
+                if x < floor && self.ev.has_evidence(u, v) {
+                    return None;
+                }
+                w += x;
             }
         }
-        w
+        Some(w)
     }
 
     /// The candidate for merging `r` and `s`, when they may merge.
@@ -163,7 +176,7 @@ impl Clustering<'_> {
         if !self.disjoint(r, s) {
             return None;
         }
-        let w = self.weight(r, s);
+        let w = self.weight(r, s)?;
         let (lo, hi) = (r.min(s), r.max(s));
         (w > 0.0).then(|| Candidate::new(w, lo, hi, (self.version[lo], self.version[hi])))
     }

@@ -151,6 +151,17 @@ impl<'a> Evidence<'a> {
         (self.entry_confidence(u, v) - self.cfg.link_threshold).min(0.0)
     }
 
+    /// The link threshold `t`.
+    pub(super) fn link_threshold(&self) -> f32 {
+        self.cfg.link_threshold
+    }
+
+    /// Whether boxes `u`, `v` of different cameras have evidence at all (their camera pair's
+    /// matrix was given).
+    pub(super) fn has_evidence(&self, u: usize, v: usize) -> bool {
+        self.mats[self.cam_of[u] * self.cameras + self.cam_of[v]].is_some()
+    }
+
     /// `S` and the calibrated `P` (from the raw distance; `None` without a calibration or a
     /// raw distance) of any entry of a camera pair's matrix; `None` without a matrix.
     fn entry(&self, u: usize, v: usize) -> Option<(f32, Option<f32>)> {

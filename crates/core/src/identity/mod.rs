@@ -15,11 +15,14 @@
 //!   evidence against as far as its own confidence falls below `t`.
 //!
 //! Starting from single boxes, the two clusters with the largest total weight between them
-//! merge while that total is positive and their cameras are disjoint (greedy additive edge
-//! contraction, the standard heuristic for correlation clustering, grown best-first with
-//! camera exclusivity as in 4D association; [`clustering`]). Two parameters, the link
-//! threshold `t` and the support `b`, chosen on the WILDTRACK training frames and the
-//! simulator presets (BENCHMARKS.md, "Identities"); the validation frames only report.
+//! merge while that total is positive, their cameras are disjoint and no pair of their boxes
+//! weighs below `−t/4` (greedy additive edge contraction, the standard heuristic for
+//! correlation clustering, grown best-first with camera exclusivity as in 4D association,
+//! with a complete-linkage veto so that many weak links cannot outvote one clear
+//! contradiction; [`clustering`]). Two tuned parameters, the link threshold `t` and the
+//! support `b`, and the veto's share of `t` picked from {0, ¼, ½}, all chosen on the
+//! WILDTRACK training frames and the simulator presets (BENCHMARKS.md, "Identities"); the
+//! validation frames only report.
 //!
 //! The plain baseline — union-find over the kept `S` matches, strongest first, with a bonus
 //! per agreeing third camera ([`union_find`]) — stays as [`IdentityMethod::UnionFind`]: the
@@ -79,7 +82,7 @@ impl IdentityMethod {
     /// The measured `(link threshold, support)` of this method (BENCHMARKS.md).
     pub fn defaults(self) -> (f32, f32) {
         match self {
-            IdentityMethod::Clustering => (0.4, 0.125),
+            IdentityMethod::Clustering => (0.35, 0.125),
             IdentityMethod::UnionFind => (0.5, 0.3),
         }
     }

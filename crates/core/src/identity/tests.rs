@@ -92,8 +92,9 @@ fn grid_cfg(t: u8) -> IdentityConfig {
 mod clusters {
     use super::*;
 
-    /// Straightforward O(N⁴) clustering with the same weights and tie-breaks (clusters named
-    /// by their smallest box), to check the heap-based implementation against. Uncalibrated.
+    /// Straightforward O(N⁴) clustering with the same weights, veto and tie-breaks (clusters
+    /// named by their smallest box), to check the heap-based implementation against.
+    /// Uncalibrated.
     fn naive(
         sizes: &[usize],
         pairs: &[ViewPair],
@@ -150,12 +151,14 @@ mod clusters {
                     if clash {
                         continue;
                     }
-                    let w: f32 = ca
+                    let ws: Vec<f32> = ca
                         .iter()
                         .flat_map(|&i| cb.iter().map(move |&j| (i, j)))
                         .map(|(i, j)| pw(nodes[i], nodes[j]))
-                        .sum();
-                    if w <= 0.0 {
+                        .collect();
+                    // The veto: no pair below −t/4.
+                    let w: f32 = ws.iter().sum();
+                    if w <= 0.0 || ws.iter().any(|&x| x < -0.25 * cfg.link_threshold) {
                         continue;
                     }
                     let names = (ca[0].min(cb[0]), ca[0].max(cb[0]));
@@ -312,6 +315,23 @@ mod repair {
     }
 
     #[test]
+    fn a_clear_contradiction_vetoes_a_merge_the_sum_would_carry() {
+        // A0–B0 and A0–C0 and B0–C1 are strong Hungarian pairs, but B0–C0 and A0–C1 are
+        // clearly different (score 0): at t = 0.4 adding either C box to {A0, B0} sums to
+        // 0.5 − 0.4 > 0, yet one of its pairs weighs −0.4 < −t/4, so C stays apart.
+        let pairs = vec![
+            pair(0, 1, array![[0.9f32]], 0.4),
+            pair(0, 2, array![[0.9f32, 0.0]], 0.4),
+            pair(1, 2, array![[0.0f32, 0.9]], 0.4),
+        ];
+        let ids = build_identities(&[1, 1, 2], &pairs, &cfg(0.4));
+        assert_eq!(
+            members(&ids),
+            vec![vec![(0, 0), (1, 0)], vec![(2, 0)], vec![(2, 1)]]
+        );
+    }
+
+    #[test]
     fn third_views_repair_a_pairwise_mistake() {
         // Persons p = A0,B0,C0 and q = A1,B1,C1; the Hungarian of A–B swaps them.
         let ab = array![[0.60f32, 0.62], [0.62, 0.60]];
@@ -375,11 +395,11 @@ mod repair {
                     if p == q {
                         0.9
                     } else {
-                        // At most 0.125: a wrong Hungarian pair (a box whose person the
+                        // At most 0.07: a wrong Hungarian pair (a box whose person the
                         // other camera does not see) that two third cameras agree with
-                        // weighs 0.125 − 0.4 + 2 × 0.125 < 0, so it stays apart.
+                        // weighs 0.07 − 0.35 + 2 × 0.125 < 0, so it stays apart.
                         let d = (people[p] as f32 - people[q] as f32).abs() / 255.0;
-                        (0.125 * d).min(0.125)
+                        (0.07 * d).min(0.07)
                     }
                 });
                 pairs.push(pair(a, b, s, 0.0));
