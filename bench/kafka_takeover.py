@@ -36,6 +36,7 @@ from confluent_kafka import OFFSET_BEGINNING, Consumer, Producer, TopicPartition
 SCENES = 8
 FPS = 10
 SPREAD_S = 0.050
+MARKER = "crossview-bench-end"
 
 
 def free_port():
@@ -82,7 +83,7 @@ def owned(port):
 
 
 class Replica:
-    def __init__(self, args, broker, models, name, log):
+    def __init__(self, args, broker, models, name, out):
         self.port = free_port()
         self.name = name
         cmd = [
@@ -92,6 +93,7 @@ class Replica:
             "--kafka-group", "replicas", "--kafka-producer-id", name,
         ] + args.replica_args.split()
         self.started = time.time()
+        log = open(os.path.join(args.out, f"run{args.run}.{name}.log"), "w")
         self.proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
 
     def wait_ready(self, timeout=60):
@@ -104,26 +106,31 @@ class Replica:
 
 
 def read_all(broker, topic):
-    """Every record of `topic`, from the beginning to its current end (no consumer group)."""
+    """Every record of `topic`, from the beginning to its end (no consumer group). The end is
+    asked for again once reached, until it stays put: the broker may report a high watermark
+    that lags the records it has acknowledged."""
     c = Consumer({"bootstrap.servers": broker, "group.id": "unused", "enable.auto.commit": False})
     parts = c.list_topics(topic, timeout=10).topics[topic].partitions
-    ends, tps = {}, []
-    for p in parts:
-        lo, hi = c.get_watermark_offsets(TopicPartition(topic, p), timeout=10)
-        if hi > lo:
-            ends[p] = hi
-            tps.append(TopicPartition(topic, p, OFFSET_BEGINNING))
-    out = []
-    if tps:
-        c.assign(tps)
-        t = time.time()
+    out, next_of = [], {}
+    t = time.time()
+    while time.time() - t < 60:
+        ends = {}
+        for p in parts:
+            _, hi = c.get_watermark_offsets(TopicPartition(topic, p), timeout=10)
+            if hi > next_of.get(p, 0):
+                ends[p] = hi
+        if not ends:
+            break
+        c.assign([TopicPartition(topic, p, next_of.get(p, OFFSET_BEGINNING)) for p in ends])
         while ends and time.time() - t < 60:
             m = c.poll(0.5)
             if m is None or m.error():
                 continue
             out.append(m)
+            next_of[m.partition()] = m.offset() + 1
             if m.offset() + 1 >= ends.get(m.partition(), 0):
                 ends.pop(m.partition(), None)
+        time.sleep(0.5)
     c.close()
     return out
 
@@ -173,8 +180,8 @@ def main():
         for t, n in (("batches", 8), ("results", 1), ("dead", 1)):
             subprocess.run([a.tansu, "topic", "create", t, "--partitions", str(n),
                             "--broker", f"tcp://{broker}"], check=True, capture_output=True)
-        ra = Replica(a, broker, models, "a", logs)
-        rb = Replica(a, broker, models, "b", logs)
+        ra = Replica(a, broker, models, "a", a.out)
+        rb = Replica(a, broker, models, "b", a.out)
         procs += [ra.proc, rb.proc]
         ready_a, ready_b = ra.wait_ready(), rb.wait_ready()
         t = time.time()
@@ -184,7 +191,7 @@ def main():
 
         acked, failed = [], [0]
 
-        created = {}
+        created, ack_delay = {}, {}
 
         def on_delivery(err, msg):
             if err is None:
@@ -192,6 +199,7 @@ def main():
                        json.loads(msg.value())["frame_id"])
                 acked.append(key)
                 created[key] = msg.timestamp()[1] / 1000.0
+                ack_delay[key] = time.time() - created[key]
             else:
                 failed[0] += 1
 
@@ -221,7 +229,7 @@ def main():
                 ra.proc.send_signal(signal.SIGKILL)
                 killed_at = time.time()
             if restarted_at is None and now >= a.restart_at:
-                ra2 = Replica(a, broker, models, "a2", logs)
+                ra2 = Replica(a, broker, models, "a2", a.out)
                 procs.append(ra2.proc)
                 restarted_at = time.time()
             at, body = events[i]
@@ -236,8 +244,15 @@ def main():
         p.flush(30)
         # Drain: wait until no new results for 5 s (bounded by 60 s).
         time.sleep(5)
-        res = read_all(broker, "results")
-        dead = read_all(broker, "dead")
+        # tansu 0.6.0 makes the last batch written to a partition readable only once another
+        # one follows (its high watermark lags a batch it has acknowledged): one marker record
+        # per output topic, skipped below, makes the replicas' last results readable.
+        for topic in ("results", "dead"):
+            p.produce(topic, key=MARKER, value=b"{}")
+        p.flush(10)
+        time.sleep(1)
+        res = [m for m in read_all(broker, "results") if m.key() != MARKER.encode()]
+        dead = [m for m in read_all(broker, "dead") if m.key() != MARKER.encode()]
     finally:
         for pr in procs:
             if pr.poll() is None:
@@ -255,6 +270,7 @@ def main():
             "scene": v["scene"], "frame": v["frame_id"], "missing": v.get("missing_cameras") or [],
             "producer": (v.get("producer") or {}).get("id"),
             "epoch": (v.get("producer") or {}).get("epoch"), "ts": m.timestamp()[1] / 1000.0,
+            "latency_ms": v.get("latency_ms"),
         })
     reported = {}
     copies = {}
@@ -273,6 +289,22 @@ def main():
         first_sent[(s_, f_)] = min(t, first_sent.get((s_, f_), t))
     lost_spread = sorted(created[(s_, c_, f_)] - first_sent[(s_, f_)]
                          for s_, c_, f_ in acked if c_ not in reported.get((s_, f_), set()))
+    # A run too short to reach the kill (or the restart) has no such phase.
+    killed_at = killed_at if killed_at is not None else float("inf")
+    restarted_at = restarted_at if restarted_at is not None else float("inf")
+
+    def phase_of(t):
+        return "before-kill" if t < killed_at else ("kill-restart" if t < restarted_at else "after-restart")
+
+    # A few of the lost batches and frames, to look up in the replicas' logs
+    # (run N.<replica>.log): scene, frame, camera, seconds since sending began, phase, and how
+    # long the broker took to acknowledge it to this producer (a late acknowledgement: the
+    # batch reached the broker late, the source's doing).
+    lost_examples = [
+        (s_, f_, c_, round(created[(s_, c_, f_)] - t0, 3), phase_of(created[(s_, c_, f_)]),
+         round(ack_delay[(s_, c_, f_)], 3))
+        for s_, c_, f_ in acked if c_ not in reported.get((s_, f_), set())
+    ][:20]
     dups = {k: v for k, v in copies.items() if len(v) > 1}
     dup_tagged = all(c["producer"] and c["epoch"] is not None for v in dups.values() for c in v)
     dup_distinct = all(len({(c["producer"], c["epoch"]) for c in v}) == len(v) for v in dups.values())
@@ -297,13 +329,12 @@ def main():
     for m in dead:
         why = dict(m.headers() or []).get("crossview-error", b"").decode()
         when = m.timestamp()[1] / 1000.0
-        phase = "before-kill" if when < killed_at else ("kill-restart" if when < restarted_at else "after-restart")
-        k = f"{phase}: {why.split(':')[0][:40]}"
+        k = f"{phase_of(when)}: {why.split(':')[0][:40]}"
         reasons[k] = reasons.get(k, 0) + 1
     partial_when = {}
     for r in results:
         if r["missing"]:
-            phase = "before-kill" if r["ts"] < killed_at else ("kill-restart" if r["ts"] < restarted_at else "after-restart")
+            phase = phase_of(r["ts"])
             partial_when[phase] = partial_when.get(phase, 0) + 1
     report = {
         "run": a.run, "frames_sent": len(frames_sent), "batches_sent": len(acked),
@@ -317,6 +348,12 @@ def main():
         "first_readyz_s": [round(ready_a, 2), round(ready_b, 2)], "all_assigned_s": round(settle, 2),
         "scenes_a_b": [len(a_scenes), len(b_scenes)],
         "dead_letter_reasons": reasons, "partial_results_by_phase": partial_when,
+        "lost_examples": lost_examples,
+        "partial_examples": [
+            (r["scene"], r["frame"], r["producer"], r["latency_ms"], len(r["missing"]),
+             round(r["ts"] - t0, 3))
+            for r in results if r["missing"]
+        ][:10],
         "lost_batches_sent_late_s": {
             "within_0.2": sum(1 for x in lost_spread if x <= 0.2),
             "beyond_0.2": sum(1 for x in lost_spread if x > 0.2),

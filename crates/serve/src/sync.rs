@@ -196,11 +196,28 @@ impl Synchronizer {
     /// leave because of it (in frame-id order), or why the batch was rejected.
     ///
     /// `camera` must be `< num_cameras` (the caller resolved the camera name).
+    #[cfg(test)]
     pub fn push(
         &mut self,
         camera: usize,
         frame_id: u64,
         detections: Vec<Detection>,
+        now: Instant,
+    ) -> Result<Vec<Emitted>, Rejection> {
+        self.push_at(camera, frame_id, detections, now, now)
+    }
+
+    /// Accepts camera `camera`'s batch for `frame_id` and returns the frames that leave because
+    /// of it, or why it was rejected, with two clocks: a new frame is stamped `arrived`, and
+    /// frames leave by timeout as of `now`, which may lag `arrived` (Kafka mode: the time up
+    /// to which the input is known to be read, so a frame never times out while its other
+    /// cameras may still be unread). `camera` must be `< num_cameras`.
+    pub fn push_at(
+        &mut self,
+        camera: usize,
+        frame_id: u64,
+        detections: Vec<Detection>,
+        arrived: Instant,
         now: Instant,
     ) -> Result<Vec<Emitted>, Rejection> {
         assert!(camera < self.num_cameras, "camera index out of range");
@@ -218,7 +235,7 @@ impl Synchronizer {
         let n = self.num_cameras;
         let entry = self.pending.entry(frame_id).or_insert_with(|| Pending {
             frame: Frame::new(frame_id, n),
-            first_seen: now,
+            first_seen: arrived,
             reported: 0,
         });
         if entry.frame.views[camera].is_some() {
@@ -358,6 +375,35 @@ mod tests {
         assert_eq!(out[0].reason, EmitReason::Timeout);
         assert_eq!(out[0].frame.views[2], None);
         assert_eq!(s.next_deadline(), None);
+    }
+
+    /// A frame stamped at its arrival times out only once the second clock passes its
+    /// deadline, however late that clock runs; complete frames still leave at once.
+    #[test]
+    fn a_lagging_clock_times_out_by_arrival() {
+        let t0 = Instant::now();
+        let ms = Duration::from_millis;
+        let mut s = Synchronizer::new(2, T, 16);
+        // Arrives at t0 + 300 while the clock still reads t0.
+        assert!(s.push_at(0, 5, det(), t0 + ms(300), t0).unwrap().is_empty());
+        assert_eq!(s.next_deadline(), Some(t0 + ms(300) + T));
+        assert!(
+            s.poll(t0 + ms(499)).is_empty(),
+            "the clock has not reached it"
+        );
+        // Another frame arrives while the clock lags behind both.
+        assert!(
+            s.push_at(0, 6, det(), t0 + ms(400), t0 + ms(100))
+                .unwrap()
+                .is_empty()
+        );
+        assert_eq!(
+            ids(&s.push_at(1, 6, det(), t0 + ms(450), t0 + ms(100)).unwrap()),
+            Vec::<u64>::new()
+        );
+        let out = s.poll(t0 + ms(500));
+        assert_eq!(ids(&out), vec![5, 6], "5 times out, complete 6 follows");
+        assert_eq!(out[0].first_seen, t0 + ms(300));
     }
 
     #[test]

@@ -226,3 +226,25 @@ async fn a_rebalance_while_catching_up_a_backlog_loses_no_camera_batch() {
     let (_b, _) = serve(bin, &replica_args(&broker, &scenes, "b")).await;
     check_exact(&mut results, &sent, &broker).await;
 }
+
+/// A backlog read with a 1 ms sync timeout. Each frame's cameras lie far apart in the
+/// partition (per block of 16 frames: every frame's first camera, then every frame's second,
+/// …), as they do when cameras send in bursts; counted while the backlog is read, the timeout
+/// would publish most frames partial and refuse their last cameras as late. The replica holds
+/// the timeouts until each partition's end: every frame comes out whole.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_backlog_is_read_whole_whatever_the_sync_timeout() {
+    let Some((Setup { broker, bin, lines }, scenes)) = rebalance_setup(48) else {
+        return;
+    };
+    let mut ordered = lines.clone();
+    ordered.sort_by_key(|(cam, frame, _)| (frame / 16, cam.clone(), *frame));
+    let p = producer(&broker);
+    let sent = stream(&p, &ordered, &scenes, 0..48, Duration::ZERO).await;
+    let mut results = Results::new(&broker, "results");
+    let mut args = replica_args(&broker, &scenes, "a");
+    let at = args.iter().position(|a| a == "--sync-timeout").unwrap();
+    args[at + 1] = "1ms".into();
+    let (_a, _) = serve(bin, &args).await;
+    check_exact(&mut results, &sent, &broker).await;
+}

@@ -38,6 +38,7 @@ mod admission;
 mod clock;
 mod published;
 mod validate;
+mod watermark;
 mod worker;
 
 pub use crate::registry::SceneInfo;
@@ -62,6 +63,8 @@ pub struct SceneOptions {
 
 struct Intake {
     sync: Synchronizer,
+    /// The synchronizer's clock for timeouts: wall time, or a transport's input watermark.
+    watermark: watermark::Watermark,
     jobs: Option<std::sync::mpsc::Sender<Job>>,
 }
 
@@ -180,6 +183,7 @@ impl Scene {
             intake: Mutex::new(Intake {
                 sync: Synchronizer::new(n, sync_timeout, max_pending)
                     .with_window(limits.frame_window),
+                watermark: watermark::Watermark::default(),
                 jobs: Some(tx),
             }),
             spec,
@@ -289,7 +293,9 @@ impl Scene {
             counts[cam] = n_boxes;
             self.check_cost("detections", frame, &counts)?;
         }
-        let emitted = match intake.sync.push(cam, frame, detections, Instant::now()) {
+        let now = Instant::now();
+        let clock = intake.watermark.at(now);
+        let emitted = match intake.sync.push_at(cam, frame, detections, now, clock) {
             Ok(e) => e,
             Err(r) => return Err(self.rejected(&intake, r, camera, frame_id)),
         };
@@ -377,14 +383,26 @@ impl Scene {
         }
     }
 
-    /// Emits whatever timed out by `now`; returns the next deadline.
+    /// Emits whatever timed out by wall time `now` (or by the input watermark, if one is
+    /// kept); returns when to look again (none: when woken).
     pub fn tick(&self, now: Instant) -> Option<Instant> {
         let mut intake = lock(&self.intake);
-        let emitted = intake.sync.poll(now);
+        let clock = intake.watermark.at(now);
+        let emitted = intake.sync.poll(clock);
         if !emitted.is_empty() {
             self.enqueue(&mut intake, emitted);
         }
-        intake.sync.next_deadline()
+        let deadline = intake.sync.next_deadline()?;
+        intake.watermark.wake_at(deadline, now)
+    }
+
+    /// Sets the scene's input watermark ([`watermark`]): `Some(t)` when the transport has read
+    /// every record written before `t` (sync timeouts are measured against it, so a frame
+    /// never times out while its other cameras may still be unread); `None` for wall time.
+    /// Kafka mode keeps one per input partition.
+    pub fn read_until(&self, read_until: Option<Instant>) {
+        lock(&self.intake).watermark.set(read_until);
+        self.wake.notify_one();
     }
 
     /// Drops the frames pending in the synchronizer (never published) and resumes as if
@@ -393,6 +411,7 @@ impl Scene {
     pub fn restart(&self, last_emitted: Option<u64>) -> usize {
         let mut intake = lock(&self.intake);
         let n = intake.sync.restart(last_emitted);
+        intake.watermark.set(None);
         self.metrics.pending(self.name(), 0);
         n
     }

@@ -92,19 +92,23 @@ impl KafkaConfig {
     }
 
     /// The consumer's configuration: manual commits, no auto offset store, the rebalance
-    /// defaults of [`CONSUMER_DEFAULTS`], then the user's properties (which win).
+    /// defaults of [`CONSUMER_DEFAULTS`], then the user's properties (which win), then the
+    /// statistics interval (always [`STATISTICS_INTERVAL_MS`]).
     pub(super) fn consumer_config(&self) -> ClientConfig {
         let mut c = self.client();
         c.set("group.id", &self.group)
             .set("enable.auto.commit", "false")
             .set("enable.auto.offset.store", "false")
             .set("auto.offset.reset", "earliest")
-            .set("enable.partition.eof", "false")
-            .set("statistics.interval.ms", "2000");
+            .set("enable.partition.eof", "false");
         for (k, v) in CONSUMER_DEFAULTS {
             c.set(*k, *v);
         }
-        self.with_properties(c, true)
+        let mut c = self.with_properties(c, true);
+        // Not the user's to change: the statistics' high watermarks are how a replica knows
+        // it has read what the broker holds (sync timeouts are held until then).
+        c.set("statistics.interval.ms", STATISTICS_INTERVAL_MS.to_string());
+        c
     }
 
     /// The producer's configuration: idempotent, a 2 ms linger, then the user's properties.
@@ -130,6 +134,12 @@ impl KafkaConfig {
         c
     }
 }
+
+/// How often the consumer reports its statistics (librdkafka `statistics.interval.ms`): the
+/// lag gauge, and each owned partition's high watermark, which tells whether records wait
+/// unread. Well below the default `--sync-timeout` (200 ms), so a replica that falls behind
+/// holds its timeouts before they expire.
+pub const STATISTICS_INTERVAL_MS: u64 = 100;
 
 /// Consumer defaults (docs/kafka.md, "Rebalances"): for a takeover in seconds, incremental
 /// rebalancing (only the partitions that move stop), a dead replica noticed after 6 s (the

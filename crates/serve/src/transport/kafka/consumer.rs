@@ -8,9 +8,15 @@ use rdkafka::producer::FutureRecord;
 use rdkafka::util::Timeout;
 
 use super::codec::{content_type, decode};
-use super::{Kafka, ValueFormat};
+use super::{Kafka, ValueFormat, read_until};
 use crate::error::{Error, Result};
 use crate::locks::lock;
+
+/// How long consumption may wait for room (frames in flight at their cap) before sync
+/// timeouts go back to wall time: frames that wait for the input watermark may be what fills
+/// it, waiting for records the wait keeps unread. Far above the time an encoder needs to free
+/// a slot.
+const STUCK: Duration = Duration::from_secs(1);
 
 /// One consumed input record.
 struct Record<'a> {
@@ -64,12 +70,37 @@ impl Kafka {
             if let Handled::Stop = self.handle(&record, format).await {
                 break;
             }
-            // Backpressure: wait while too many frames wait for their results.
-            while lock(&self.offsets).in_flight() >= self.config.max_in_flight
-                && self.service.accepting()
-            {
-                tokio::time::sleep(Duration::from_millis(2)).await;
+            self.backpressure().await;
+        }
+    }
+
+    /// Waits while too many frames wait for their results. Frames whose timeouts wait for
+    /// the input watermark could wait for records this wait keeps unread: after [`STUCK`]
+    /// without room, every scene goes back to wall time.
+    async fn backpressure(&self) {
+        let started = std::time::Instant::now();
+        let mut released = false;
+        while lock(&self.offsets).in_flight() >= self.config.max_in_flight
+            && self.service.accepting()
+        {
+            if !released && started.elapsed() >= STUCK {
+                self.release_holds("no room for frames in flight");
+                released = true;
             }
+            tokio::time::sleep(Duration::from_millis(2)).await;
+        }
+    }
+
+    /// Every scene back to wall time for its sync timeouts (consumption is stuck: see
+    /// [`STUCK`]); the next statistics set their watermarks again.
+    fn release_holds(&self, why: &str) {
+        let scenes = lock(&self.offsets).release_all();
+        if !scenes.is_empty() {
+            tracing::warn!(
+                ?scenes,
+                "kafka: {why} for {STUCK:?}; sync timeouts on wall time"
+            );
+            read_until(&self.service, &scenes, None);
         }
     }
 
@@ -132,10 +163,15 @@ impl Kafka {
     }
 
     /// The first record of `scene` since its partition was (re)assigned: the scene starts
-    /// afresh just past its last produced frame (none: from scratch).
+    /// afresh just past its last produced frame (none: from scratch), its sync timeouts
+    /// measured against the partition's input watermark.
     fn enter_scene(&self, scene: &str, partition: i32) {
-        let Some(last) = lock(&self.offsets).enter_scene(scene, partition) else {
-            return;
+        let (last, until) = {
+            let mut o = lock(&self.offsets);
+            let Some(last) = o.enter_scene(scene, partition) else {
+                return;
+            };
+            (last, o.read_until(partition))
         };
         if let Some(s) = self
             .service
@@ -144,6 +180,7 @@ impl Kafka {
             .find(|s| s.name() == scene)
         {
             let dropped = s.restart(last);
+            s.read_until(until);
             tracing::info!(
                 scene,
                 partition,

@@ -1,6 +1,7 @@
 //! librdkafka callbacks: rebalances (commit, drop what moves, epoch, readiness) and statistics
-//! (lag of the owned partitions).
+//! (lag of the owned partitions, and their high watermarks: whether records wait unread).
 use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 use rdkafka::consumer::{BaseConsumer, CommitMode, Consumer, ConsumerContext, Rebalance};
 use rdkafka::{ClientContext, Offset, Statistics, TopicPartitionList};
@@ -8,7 +9,7 @@ use rdkafka::{ClientContext, Offset, Statistics, TopicPartitionList};
 use crate::error::{Error, Result};
 
 use super::offsets::Ownership;
-use super::{lock, now_ms};
+use super::{lock, now_ms, read_until};
 use crate::metrics::Metrics;
 use crate::service::Service;
 
@@ -18,6 +19,43 @@ pub(super) struct Context {
     pub(super) offsets: Arc<Mutex<Ownership>>,
     pub(super) metrics: Metrics,
     pub(super) service: Arc<Service>,
+    pub(super) stats_clock: Mutex<StatsClock>,
+}
+
+/// When librdkafka emitted a statistics report, on this process's clock: its `ts` is
+/// librdkafka's own monotonic clock (µs), whose zero is unknown here. Every report is handled
+/// at or after its emission, so the smallest (handled − `ts`) seen is the closest estimate of
+/// that zero: a report handled late (a busy consumer) is dated when it was emitted, not
+/// when it was read.
+#[derive(Debug)]
+pub(super) struct StatsClock {
+    base: Instant,
+    /// Smallest (handled − `ts`) so far, µs since `base`.
+    offset: Option<i64>,
+}
+
+impl Default for StatsClock {
+    fn default() -> Self {
+        StatsClock {
+            base: Instant::now(),
+            offset: None,
+        }
+    }
+}
+
+impl StatsClock {
+    /// The emission instant of a report stamped `ts`, handled now.
+    fn emitted(&mut self, ts: i64) -> Instant {
+        self.emitted_at(ts, Instant::now())
+    }
+
+    fn emitted_at(&mut self, ts: i64, handled: Instant) -> Instant {
+        let since = handled.saturating_duration_since(self.base).as_micros() as i64;
+        let offset = self.offset.map_or(since - ts, |o| o.min(since - ts));
+        self.offset = Some(offset);
+        let at = (ts + offset).clamp(0, since);
+        self.base + Duration::from_micros(at as u64)
+    }
 }
 
 impl ClientContext for Context {
@@ -25,11 +63,27 @@ impl ClientContext for Context {
         let Some(t) = stats.topics.get(&self.topic) else {
             return;
         };
-        let owned = lock(&self.offsets);
-        for (p, part) in &t.partitions {
-            if *p >= 0 && part.consumer_lag >= 0 && owned.owns(*p) {
-                self.metrics.kafka_lag(&self.topic, *p, part.consumer_lag);
+        let at = lock(&self.stats_clock).emitted(stats.ts);
+        let late = at.elapsed();
+        if late > Duration::from_millis(50) {
+            tracing::debug!(?late, "kafka: statistics handled late");
+        }
+        let mut moved = Vec::new();
+        {
+            let mut owned = lock(&self.offsets);
+            for (p, part) in &t.partitions {
+                if *p < 0 || !owned.owns(*p) {
+                    continue;
+                }
+                if part.consumer_lag >= 0 {
+                    self.metrics.kafka_lag(&self.topic, *p, part.consumer_lag);
+                }
+                let read = part.committed_offset.max(part.app_offset);
+                moved.extend(owned.watermark(*p, part.hi_offset, read, at));
             }
+        }
+        for (until, scenes) in moved {
+            read_until(&self.service, &scenes, Some(until));
         }
     }
 }
@@ -115,4 +169,24 @@ pub(super) fn commit_list(topic: &str, commits: &[(i32, i64)]) -> Result<TopicPa
             .map_err(|e| Error::internal_from("kafka: bad commit offset", e))?;
     }
     Ok(tpl)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A report handled late is dated by the earlier reports' smallest delay.
+    #[test]
+    fn statistics_are_dated_when_emitted() {
+        let mut c = StatsClock::default();
+        let ms = Duration::from_millis;
+        let base = c.base;
+        // librdkafka's clock reads 5_000_000 µs when ours reads base + 100 ms (handled at once).
+        assert_eq!(c.emitted_at(5_000_000, base + ms(100)), base + ms(100));
+        // The next report, 100 ms later on its clock, handled 300 ms late.
+        assert_eq!(c.emitted_at(5_100_000, base + ms(500)), base + ms(200));
+        // One handled sooner than the first was: the estimate tightens.
+        assert_eq!(c.emitted_at(5_200_000, base + ms(290)), base + ms(290));
+        assert_eq!(c.emitted_at(5_100_000, base + ms(900)), base + ms(190));
+    }
 }

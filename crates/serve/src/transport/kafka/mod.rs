@@ -73,6 +73,7 @@ pub fn start(service: Arc<Service>, config: KafkaConfig) -> Result<tokio::task::
         offsets: offsets.clone(),
         metrics,
         service: service.clone(),
+        stats_clock: Default::default(),
     };
     let consumer: StreamConsumer<Context> =
         config
@@ -131,6 +132,16 @@ pub fn start(service: Arc<Service>, config: KafkaConfig) -> Result<tokio::task::
         k.commit(CommitMode::Sync);
         tracing::info!("kafka mode: stopped");
     }))
+}
+
+/// Moves the input watermark of `scenes` ([`crate::scene::Scene::read_until`]; `None`: back
+/// to wall time).
+fn read_until(service: &Service, scenes: &[String], until: Option<std::time::Instant>) {
+    for name in scenes {
+        if let Ok(scene) = service.scene(name) {
+            scene.read_until(until);
+        }
+    }
 }
 
 /// How often the committable offsets are committed (asynchronously) while running; on

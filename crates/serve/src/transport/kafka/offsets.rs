@@ -12,7 +12,12 @@
 //!   frames already produced are recognised as re-deliveries.
 //! * Per partition ever owned, one past the highest offset consumed: a record below it was
 //!   read before (a re-delivery after a rebalance).
+//! * Per owned partition, its *watermark*: the time up to which every record written to it
+//!   has been read here (from the consumer's statistics: read up to their high watermark).
+//!   Its scenes' sync timeouts are measured against it ([`crate::scene::Scene::read_until`]),
+//!   so a frame never times out while the rest of its cameras may still be unread.
 use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::time::Instant;
 
 /// The offsets of one owned input partition.
 #[derive(Debug, Default)]
@@ -25,6 +30,8 @@ struct Part {
     committed: Option<i64>,
     /// Which assignment of the partition this is.
     generation: u64,
+    /// Every record written before this instant has been read (at first: the assignment).
+    read_until: Option<Instant>,
 }
 
 impl Part {
@@ -84,6 +91,7 @@ impl Ownership {
                 partition,
                 Part {
                     generation,
+                    read_until: Some(Instant::now()),
                     ..Part::default()
                 },
             );
@@ -102,13 +110,59 @@ impl Ownership {
         }
         let before = self.frames.len();
         self.frames.retain(|_, h| h.partition != partition);
-        let scenes = self
-            .scenes
+        (
+            self.scenes_on(|q| q == partition),
+            before - self.frames.len(),
+        )
+    }
+
+    /// Owned `partition`'s watermark (see the module docs); `None` when not owned or after
+    /// [`release_all`](Self::release_all).
+    pub(super) fn read_until(&self, partition: i32) -> Option<Instant> {
+        self.parts.get(&partition).and_then(|p| p.read_until)
+    }
+
+    /// The consumer's statistics for owned `partition`, emitted at `at`: the broker's high
+    /// watermark `high` and where librdkafka has the consumer (its committed or application
+    /// offset, whichever is further; negative: unknown). When
+    /// everything below `high` was read, every record written before `at` was, and the
+    /// watermark moves to `at`: returns it and the scenes running on the partition.
+    pub(super) fn watermark(
+        &mut self,
+        partition: i32,
+        high: i64,
+        position: i64,
+        at: Instant,
+    ) -> Option<(Instant, Vec<String>)> {
+        let p = self.parts.get_mut(&partition)?;
+        let read = p.next.unwrap_or(i64::MIN).max(position);
+        if high < 0 || read < high {
+            return None;
+        }
+        let w = p.read_until.map_or(at, |w| w.max(at));
+        p.read_until = Some(w);
+        Some((w, self.scenes_on(|q| q == partition)))
+    }
+
+    /// Forgets every partition's watermark (consumption is stuck, so nothing unread is on its
+    /// way): their scenes go back to wall time until the next statistics. Returns the scenes.
+    pub(super) fn release_all(&mut self) -> Vec<String> {
+        let mut released = Vec::new();
+        for (&q, p) in self.parts.iter_mut() {
+            if p.read_until.take().is_some() {
+                released.push(q);
+            }
+        }
+        self.scenes_on(|q| released.contains(&q))
+    }
+
+    /// The scenes last started on a partition `on` accepts.
+    fn scenes_on(&self, on: impl Fn(i32) -> bool) -> Vec<String> {
+        self.scenes
             .iter()
-            .filter(|(_, s)| s.partition == partition)
+            .filter(|(_, s)| on(s.partition))
             .map(|(name, _)| name.clone())
-            .collect();
-        (scenes, before - self.frames.len())
+            .collect()
     }
 
     /// Whether `partition` is owned now.
@@ -338,5 +392,67 @@ mod tests {
     fn scenes_no_record_named_are_produced_without_offsets() {
         let mut o = Ownership::default();
         assert_eq!(o.take_frame("grpc-only", 1), Publish::Unheld);
+    }
+
+    /// The watermark starts at the assignment and moves to a statistics' time only when
+    /// everything below their high watermark was read (or committed); it never moves back;
+    /// `release_all` forgets it until the next statistics.
+    #[test]
+    fn the_watermark_moves_only_when_everything_written_was_read() {
+        use std::time::Duration;
+        let ms = Duration::from_millis;
+        let sorted = |r: Option<(Instant, Vec<String>)>| {
+            r.map(|(t, mut v)| {
+                v.sort();
+                (t, v)
+            })
+        };
+        let t0 = Instant::now();
+        let mut o = Ownership::default();
+        assert_eq!(o.read_until(0), None, "not owned");
+        assert_eq!(o.watermark(9, 5, 0, t0), None, "not owned");
+        o.assign(0);
+        o.assign(1);
+        let start = o.read_until(0).expect("from the assignment");
+        assert!(start >= t0);
+        o.enter_scene("a", 0);
+        o.enter_scene("b", 0);
+        o.enter_scene("c", 1);
+        let t1 = start + ms(100);
+        // 10 records on the broker, none read.
+        assert_eq!(o.watermark(0, 10, -1001, t1), None);
+        o.consumed(0, 8);
+        assert_eq!(o.watermark(0, 10, -1001, t1), None, "9 unread");
+        o.consumed(0, 9);
+        let ab = vec!["a".to_string(), "b".to_string()];
+        assert_eq!(
+            sorted(o.watermark(0, 10, -1001, t1)),
+            Some((t1, ab.clone()))
+        );
+        // Older statistics never move it back.
+        assert_eq!(
+            sorted(o.watermark(0, 10, -1001, start)),
+            Some((t1, ab.clone()))
+        );
+        assert_eq!(o.read_until(0), Some(t1));
+        // More written since: it stays until those are read.
+        assert_eq!(o.watermark(0, 12, 10, t1 + ms(100)), None);
+        assert_eq!(o.read_until(0), Some(t1));
+        // Nothing to read (the committed offset is the high watermark); unknown (-1): no move.
+        assert_eq!(o.watermark(1, 40, 40, t1), Some((t1, vec!["c".into()])));
+        assert_eq!(o.watermark(1, -1, -1, t1 + ms(50)), None);
+        let mut released = o.release_all();
+        released.sort();
+        assert_eq!(released, ["a", "b", "c"]);
+        assert_eq!((o.read_until(0), o.read_until(1)), (None, None));
+        assert!(o.release_all().is_empty());
+        o.consumed(0, 10);
+        o.consumed(0, 11);
+        let t2 = t1 + ms(200);
+        assert_eq!(sorted(o.watermark(0, 12, 10, t2)), Some((t2, ab)));
+        // Revoked and assigned again: from the new assignment.
+        o.revoke(1);
+        o.assign(1);
+        assert!(o.read_until(1).is_some_and(|t| t >= start));
     }
 }

@@ -1,0 +1,110 @@
+#!/usr/bin/env bash
+# CPU per frame of one `crossview serve` replica in Kafka mode beside the gRPC path's, on the
+# same scenes at the same rate (BENCHMARKS.md, "Kafka mode"): SCENES scenes of the simulator's
+# PRESET at RATE frames/s each for DURATION, driven by `crossview-loadtest` (gRPC pushes and a
+# gRPC subscription; or batches produced to a fresh tansu broker and results read from the
+# output topic). The server's CPU time (user + system, /proc/PID/stat) is read just before the
+# load starts and just after it ends, so start-up and model loading are left out; CPU per
+# frame = that difference / the results the load tester received. The broker's CPU is
+# reported apart. Each mode runs ROUNDS times, alternating (kafka, grpc, kafka, grpc, ...).
+# The live clock watch is off in both (`--clock-watch-window 0`): it is the same in every
+# transport, but its one estimate per scene per 10 s (~0.6 s of CPU each for 7 cameras) falls
+# inside a 20 s load window or not by chance (measured: 5.0 of a Kafka run's 9.1 CPU seconds).
+#
+# Usage: bash bench/kafka_cpu.sh
+# Env:   CROSSVIEW_BIN (target/release/crossview)  LOADTEST_BIN (target/release/crossview-loadtest)
+#        TANSU (.cache/tansu/tansu)  OUT (/var/tmp/crossview-kafka-cpu)  PRESET (wildtrack)
+#        WIDTH (64)  SCENES (8)  PARTITIONS (8)  RATE (10)  DURATION (20s)  ROUNDS (3)
+#        FORMAT (json|protobuf)  REPLICA_ARGS (extra `crossview serve` flags)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+CROSSVIEW_BIN=${CROSSVIEW_BIN:-target/release/crossview}
+LOADTEST_BIN=${LOADTEST_BIN:-target/release/crossview-loadtest}
+TANSU=${TANSU:-.cache/tansu/tansu}
+OUT=${OUT:-/var/tmp/crossview-kafka-cpu}
+PRESET=${PRESET:-wildtrack}
+WIDTH=${WIDTH:-64}
+SCENES=${SCENES:-8}
+PARTITIONS=${PARTITIONS:-8}
+RATE=${RATE:-10}
+DURATION=${DURATION:-20s}
+ROUNDS=${ROUNDS:-3}
+FORMAT=${FORMAT:-json}
+export ORT_DYLIB_PATH=${ORT_DYLIB_PATH:-$PWD/.cache/onnxruntime/libonnxruntime.so.1.31.1}
+[[ -x $TANSU ]] || { echo "no tansu at $TANSU (run make setup)" >&2; exit 2; }
+
+mkdir -p "$OUT"
+"$CROSSVIEW_BIN" simulate --preset "$PRESET" --frames 600 --seed 11 --out "$OUT/rec.jsonl" 2>/dev/null
+"$CROSSVIEW_BIN" model init --scene-from "$OUT/rec.jsonl" --out "$OUT/model.onnx" --width "$WIDTH" >/dev/null 2>&1
+SCENE=$(head -1 "$OUT/rec.jsonl" | python3 -c 'import json,sys; print(json.load(sys.stdin)["scene"]["name"])')
+MODELS=$(for i in $(seq 0 $((SCENES - 1))); do printf '%s-%d=%s,' "$SCENE" "$i" "$OUT/model.onnx"; done)
+MODELS=${MODELS%,}
+NAMES=$(for i in $(seq 0 $((SCENES - 1))); do printf '%s-%d,' "$SCENE" "$i"; done)
+NAMES=${NAMES%,}
+
+free_port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'; }
+PIDS=()
+stop_all() {
+  for p in "${PIDS[@]}"; do kill "$p" 2>/dev/null || true; done
+  for p in "${PIDS[@]}"; do wait "$p" 2>/dev/null || true; done
+  PIDS=()
+}
+trap stop_all EXIT
+# CPU seconds (user + system) a process has used so far.
+cpu_s() { awk -v hz="$(getconf CLK_TCK)" '{printf "%.2f", ($14 + $15) / hz}' "/proc/$1/stat" 2>/dev/null || echo 0; }
+wait_port() { for _ in $(seq 100); do (exec 3<>"/dev/tcp/127.0.0.1/$1") 2>/dev/null && return; sleep 0.1; done; }
+
+run() { # run MODE ROUND
+  local mode=$1 name="$1-$2" port; port=$(free_port)
+  local extra=() load=() bpid=
+  if [[ $mode == kafka ]]; then
+    local bport; bport=$(free_port)
+    local broker=127.0.0.1:$bport
+    "$TANSU" broker --listener-url "tcp://$broker" --advertised-listener-url "tcp://$broker" \
+      --storage-engine memory://tansu/ >"$OUT/$name.broker.log" 2>&1 &
+    bpid=$!; PIDS+=("$bpid")
+    wait_port "$bport"
+    "$TANSU" topic create batches --partitions "$PARTITIONS" --broker "tcp://$broker" >/dev/null
+    "$TANSU" topic create results --partitions 4 --broker "tcp://$broker" >/dev/null
+    extra=(--kafka-brokers "$broker" --kafka-input-topic batches --kafka-output-topic results
+           --kafka-group cpu --kafka-input-format "$FORMAT" --kafka-output-format "$FORMAT")
+    load=(--transport kafka --kafka-brokers "$broker" --kafka-format "$FORMAT")
+  else
+    load=(--transport grpc --target "http://127.0.0.1:$port")
+  fi
+  # shellcheck disable=SC2086
+  "$CROSSVIEW_BIN" serve --listen "127.0.0.1:$port" --model "$MODELS" "${extra[@]}" \
+    --clock-watch-window 0 ${REPLICA_ARGS:-} \
+    >"$OUT/$name.server.log" 2>&1 &
+  local spid=$!; PIDS+=("$spid")
+  for _ in $(seq 600); do curl -sf "http://127.0.0.1:$port/readyz" >/dev/null && break; sleep 0.1; done
+  if [[ $mode == kafka ]]; then # every partition owned
+    for _ in $(seq 600); do
+      (( $(curl -sf "http://127.0.0.1:$port/metrics" | grep -c '^crossview_kafka_assigned{.* 1$' || true) == PARTITIONS )) && break
+      sleep 0.1
+    done
+  fi
+  local c0 b0=0; c0=$(cpu_s "$spid"); [[ -n $bpid ]] && b0=$(cpu_s "$bpid")
+  "$LOADTEST_BIN" "${load[@]}" --recording "$OUT/rec.jsonl" --scene-names "$NAMES" \
+    --rate "$RATE" --duration "$DURATION" --loop --drain-timeout 10s --json \
+    >"$OUT/$name.json" 2>"$OUT/$name.err" || true
+  local c1 b1=0; c1=$(cpu_s "$spid"); [[ -n $bpid ]] && b1=$(cpu_s "$bpid")
+  stop_all
+  python3 - "$OUT/$name.json" "$mode" "$c0" "$c1" "$b0" "$b1" <<'PY'
+import json, sys
+path, mode, c0, c1, b0, b1 = sys.argv[1], sys.argv[2], *map(float, sys.argv[3:])
+r = json.load(open(path))
+n = r["results"]
+cpu = c1 - c0
+broker = f"{(b1 - b0) / n * 1000:.2f}" if mode == "kafka" and n else "–"
+print(f"| {mode} | {len(r['scenes'])} | {r['rate_fps_per_scene']} | {n} | {r['frames_lost']} "
+      f"| {cpu:.2f} | **{cpu / max(n, 1) * 1000:.2f}** | {broker} | {r['latency_complete']['p50_ms']:.1f} |")
+PY
+}
+
+echo "| path | scenes | fps/scene | results | lost | server CPU s | server CPU ms/frame | broker CPU ms/frame | p50 ms |"
+echo "|---|---:|---:|---:|---:|---:|---:|---:|---:|"
+for round in $(seq "$ROUNDS"); do
+  run kafka "$round"
+  run grpc "$round"
+done
