@@ -3,12 +3,15 @@
 compared), on the dumps of `identity_dump` (per frame: ids and every camera pair's raw
 distances; the model's calibration): SPEC §3 pairwise, the union-find baseline, correlation
 clustering (greedy additive edge contraction, camera-exclusive) on several affinities, and its
-average-linkage variant. Scores identity-derived ACC / IPAA-100 exactly as `crossview eval`
+average-linkage variant; `--cameras` keeps a camera subset (the others' boxes removed),
+`:VETO` adds the veto as a share of `t` (what ships: gaec:0.35:0.125:0.25), `chains` prints how
+often pairwise matching is intransitive, `--few` uses another setting on frames with at most N
+cameras reporting. Scores identity-derived ACC / IPAA-100 exactly as `crossview eval`
 (the pairwise and union-find rows reproduce the Rust figures to the last digit).
 
   cargo build --release -p crossview-bench --bin identity_dump
   target/release/identity_dump models/wildtrack.onnx train.jsonl train_dump.jsonl
-  python3 bench/identity_prototypes.py train_dump.jsonl METHOD:T:B ...
+  python3 bench/identity_prototypes.py train_dump.jsonl [--cameras 0,1,2] [--few N:T:B:VETO] METHOD:T:B[:VETO] ... [chains]
 
 METHOD: uf (union-find on S), gaec (max(S,P) links + support, min(0, P - t) elsewhere: what
 ships), avg (the same weights, average linkage), dense (S - t on every entry), gated-s
@@ -155,23 +158,27 @@ def union_find(fr, t, bonus, key='s'):
     for u in range(n): cl.setdefault(find(u), []).append(u)
     return nodes, A, H, list(cl.values())
 
-def gaec(fr, W, nodes):
-    """Greedy additive edge contraction with camera exclusivity on weight matrix W (nan = same camera)."""
+def gaec(fr, W, nodes, veto=-np.inf):
+    """Greedy additive edge contraction with camera exclusivity on weight matrix W (nan = same
+    camera or no evidence); two clusters never merge while a pair of their boxes weighs below
+    `veto` (the shipped veto: -t/4)."""
     n = len(nodes)
     if n == 0: return []
     cam = np.array([c for c, _ in nodes])
     Wc = np.where(np.isnan(W), 0.0, W).copy()
+    Wmin = np.where(np.isnan(W), np.inf, W).copy()
     conf = cam[:, None] == cam[None, :]
     alive = np.ones(n, bool)
     members = [[u] for u in range(n)]
     while True:
-        M = np.where(conf | ~alive[None, :] | ~alive[:, None], -np.inf, Wc)
+        M = np.where(conf | ~alive[None, :] | ~alive[:, None] | (Wmin < veto), -np.inf, Wc)
         np.fill_diagonal(M, -np.inf)
         k = np.argmax(M)
         r, s = divmod(k, n)
         if not M[r, s] > 0: break
         if s < r: r, s = s, r
         Wc[r] += Wc[s]; Wc[:, r] += Wc[:, s]
+        Wmin[r] = np.minimum(Wmin[r], Wmin[s]); Wmin[:, r] = np.minimum(Wmin[:, r], Wmin[:, s])
         conf[r] |= conf[s]; conf[:, r] |= conf[:, s]
         alive[s] = False
         members[r] += members[s]
@@ -227,23 +234,68 @@ def gaec_avg(W, nodes):
     return [sorted(members[u]) for u in range(n) if alive[u]]
 
 
-def run(frames, method, t, b):
+def run(frames, method, t, b, veto=None, few=None):
+    """`veto`: share of `t` (the shipped ¼); None = no veto. `few`: (N, t, b, veto) used instead
+    on frames with at most N cameras reporting (a rule by camera count)."""
     res = []
+    outer = (t, b, veto)
     for fr in frames:
+        t, b, veto = outer
+        if few is not None and sum(1 for k in fr['sizes'] if k > 0) <= few[0]:
+            t, b, veto = few[1:]
         if method == 'uf':
             nodes, _, _, cl = union_find(fr, t, b, 's')
         else:
             nodes, W = weights(fr, method, t, b)
-            cl = gaec_avg(W, nodes) if method == 'avg' else gaec(fr, W, nodes)
+            level = -np.inf if veto is None else -veto * t
+            cl = gaec_avg(W, nodes) if method == 'avg' else gaec(fr, W, nodes, level)
         res.append(as_idents(nodes, cl, [0.5] * len(cl)))
     return score(frames, res)
 
 
+def chains(frames, thr=0.5):
+    """Pairwise `S >= thr` matching's transitivity: chains A-B-C it matches, and how many of
+    them have A-C not matched to the same box."""
+    total = broken = 0
+    for fr in frames:
+        m = {k: {i: j for i, j in p['hung'] if p['s'][i, j] >= thr} for k, p in fr['pairs'].items()}
+        cams = [c for c, k in enumerate(fr['sizes']) if k > 0]
+        for x, a in enumerate(cams):
+            for y, b in enumerate(cams[x + 1:], x + 1):
+                for c in cams[y + 1:]:
+                    ab, bc, ac = m.get((a, b), {}), m.get((b, c), {}), m.get((a, c), {})
+                    for i, j in ab.items():
+                        if j in bc:
+                            total += 1
+                            broken += ac.get(i) != bc[j]
+    return total, broken
+
+
 if __name__ == '__main__':
-    cal, frames = load(sys.argv[1])
+    args = sys.argv[1:]
+    cameras = None
+    if '--cameras' in args:
+        k = args.index('--cameras')
+        cameras = [int(c) for c in args[k + 1].split(',')]
+        del args[k:k + 2]
+    few = None
+    if '--few' in args:
+        k = args.index('--few')
+        n, *rest = args[k + 1].split(':')
+        few = (int(n), *map(float, rest))
+        del args[k:k + 2]
+    cal, frames = load(args[0])
     if cal:
         add_prob(cal, frames)
-    for arg in sys.argv[2:]:
-        m, t, b = arg.split(':')
-        acc, ipaa, _ = run(frames, m, float(t), float(b))
-        print(f"{m} t={t} b={b}: ACC {acc:.2f} IPAA-100 {ipaa:.2f}", flush=True)
+    if cameras is not None:
+        frames = subset(frames, cameras)
+    for arg in args[1:]:
+        if arg == 'chains':
+            total, broken = chains(frames)
+            print(f"pairwise S>=0.5 chains A-B-C: {total}, A-C not the same box: {broken} "
+                  f"({100 * broken / max(total, 1):.1f} %)", flush=True)
+            continue
+        m, t, b, *v = arg.split(':')
+        veto = float(v[0]) if v else None
+        acc, ipaa, _ = run(frames, m, float(t), float(b), veto, few)
+        print(f"{arg}: ACC {acc:.2f} IPAA-100 {ipaa:.2f}", flush=True)
