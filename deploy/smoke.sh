@@ -12,12 +12,19 @@
 #      container; checks /healthz, /readyz, the container health check, resource limits,
 #      /metrics counters and that Prometheus scraped the server; stops the server with SIGTERM
 #      and expects a clean exit;
-#   6. tears everything down. Exits non-zero on any failure.
+#   6. the `kafka` profile (SMOKE_KAFKA=0 skips it): broker, topic job, two replicas in one
+#      consumer group and the profile's replay client; checks that every replayed frame has a
+#      result, SIGKILLs one replica through the engine (`podman kill -s KILL`; its restart
+#      policy brings it back), replays new scenes from a second container while the group
+#      rebalances, and checks again that every frame has a result and that the replicas own
+#      every input partition between them afterwards;
+#   7. tears everything down. Exits non-zero on any failure.
 #
 # Usage: bash deploy/smoke.sh            (as root; `make smoke`)
 # Env:   SMOKE_BUILD=source|prebuilt     SMOKE_PORT (18080)  SMOKE_PROM_PORT (19090)
 #        SMOKE_KEEP=1 (leave the stack running)   SMOKE_WORK (/var/tmp/crossview-smoke)
 #        SMOKE_NO_CARGO=1 (prebuilt: package target/release as it is)
+#        SMOKE_KAFKA=0 (skip the kafka profile)  SMOKE_REPLICA_A_PORT (18081)  SMOKE_REPLICA_B_PORT (18082)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 REPO=$PWD
@@ -34,8 +41,18 @@ PROM_IMAGE=localhost/crossview-prometheus:local
 ORT_LIB=.cache/onnxruntime/libonnxruntime.so.1.31.1
 # The replay service drives REPLAY_SCENES; the HTTP checks use HTTP_SCENE meanwhile.
 REPLAY_SCENES=square4-0,square4-1
+# The kafka profile: scenes replayed before the kill, then new ones during the takeover (new
+# scenes, so their frame ids never meet the first replay's).
+KAFKA=${SMOKE_KAFKA:-1}
+KAFKA_SCENES_BEFORE=square4-0,square4-1,square4-2,square4-3
+KAFKA_SCENES_AFTER=square4-4,square4-5,square4-6,square4-7
+KAFKA_PARTITIONS=8
 HTTP_SCENE=square4-2
 HTTP_FRAMES=5
+# The HTTP load test's scenes: not used before in the run. (Its fresh frame ids jump far above
+# an earlier client's on the same scene, and the server refuses a jump beyond its frame-id
+# window until the cameras agree on it: the first batches would be rejected as out of range.)
+LOADTEST_SCENES=square4-6,square4-7
 
 log() { printf '\n[smoke %s] %s\n' "$(date +%H:%M:%S)" "$*" >&2; }
 fail() { printf '\n[smoke] FAIL: %s\n' "$*" >&2; exit 1; }
@@ -151,21 +168,24 @@ make_data() {
 # ---------------------------------------------------------------- 4. compose
 export CROSSVIEW_PORT=$PORT CROSSVIEW_PROMETHEUS_PORT=$PROM_PORT
 export CROSSVIEW_MODELS_DIR=$WORK/run/models CROSSVIEW_REPLAY_DIR=$WORK/run/data
-export CROSSVIEW_MODELS="square4-0=/models/square4.onnx,square4-1=/models/square4.onnx,square4-2=/models/square4.onnx"
+CROSSVIEW_MODELS=$(for i in 0 1 2 3 4 5 6 7; do printf 'square4-%d=/models/square4.onnx,' "$i"; done)
+export CROSSVIEW_MODELS=${CROSSVIEW_MODELS%,}
+export CROSSVIEW_REPLICA_A_PORT=${SMOKE_REPLICA_A_PORT:-18081} CROSSVIEW_REPLICA_B_PORT=${SMOKE_REPLICA_B_PORT:-18082}
+export CROSSVIEW_KAFKA_PARTITIONS=$KAFKA_PARTITIONS
 export CROSSVIEW_REPLAY_SCENES=$REPLAY_SCENES CROSSVIEW_REPLAY_FRAMES=100 CROSSVIEW_REPLAY_RATE=20
 export CROSSVIEW_REPLAY_TRANSPORT=grpc
 
 teardown() {
   local rc=$?
   if [[ $rc -ne 0 ]]; then
-    for c in server prometheus replay; do
+    for c in server prometheus replay broker kafka-topics replica-a replica-b kafka-replay; do
       podman logs --tail 40 "${PROJECT}_${c}_1" >"$WORK/logs/container-$c.log" 2>&1 || true
       echo "--- last log lines of $c" >&2; tail -n 15 "$WORK/logs/container-$c.log" >&2 || true
     done
   fi
   if [[ -z ${SMOKE_KEEP:-} && -n ${COMPOSE+x} ]]; then
     log "podman-compose down"
-    "${COMPOSE[@]}" down -t 5 >"$WORK/logs/compose-down.log" 2>&1 || true
+    "${COMPOSE[@]}" --profile kafka down -t 5 >"$WORK/logs/compose-down.log" 2>&1 || true
   fi
   if [[ -n ${SSE_PID:-} ]]; then kill "$SSE_PID" 2>/dev/null || true; fi
   if [[ $rc -eq 0 ]]; then
@@ -178,7 +198,7 @@ teardown() {
 
 compose_up() {
   log "podman-compose up -d"
-  "${COMPOSE[@]}" down -t 5 >/dev/null 2>&1 || true
+  "${COMPOSE[@]}" --profile kafka down -t 5 >/dev/null 2>&1 || true
   "${COMPOSE[@]}" up -d >"$WORK/logs/compose-up.log" 2>&1 \
     || { tail -n 30 "$WORK/logs/compose-up.log" >&2; fail "podman-compose up"; }
   pass "podman-compose up -d"
@@ -287,7 +307,7 @@ loadtest_http() {
   log "HTTP load test from a second container through the published port"
   podman run --rm --network=host -v "$WORK/run/data:/data:ro" --entrypoint crossview-loadtest "$IMAGE" \
     --target "http://127.0.0.1:$PORT" --recording /data/replay.jsonl --transport http \
-    --scene-names "$HTTP_SCENE,${REPLAY_SCENES%%,*}" --rate 20 --frames 60 --connections 2 --json \
+    --scene-names "$LOADTEST_SCENES" --rate 20 --frames 60 --connections 2 --json \
     >"$WORK/logs/loadtest-http.json" 2>"$WORK/logs/loadtest-http.stderr" \
     || { cat "$WORK/logs/loadtest-http.json" "$WORK/logs/loadtest-http.stderr" >&2; fail "HTTP load test"; }
   python3 - "$WORK/logs/loadtest-http.json" <<'PY' || fail "HTTP load test report"
@@ -297,7 +317,7 @@ assert r["passed"] and r["frames_lost"] == 0, r
 print(f"[smoke] http loadtest: {r['batches_sent']} batches, {r['results']} results, "
       f"p50 {r['latency_complete']['p50_ms']:.1f} ms p99 {r['latency_complete']['p99_ms']:.1f} ms", file=sys.stderr)
 PY
-  pass "HTTP load test (POST + SSE, 2 scenes) passed with 0 frames lost"
+  pass "HTTP load test (POST + SSE, 2 fresh scenes) passed with 0 frames lost"
 }
 
 graceful_stop() {
@@ -323,6 +343,10 @@ prometheus_check() {
   pass "Prometheus scraped server:8080/metrics (target up, sum(crossview_batches_total) > 0)"
 }
 
+# ---------------------------------------------------------------- 6. kafka profile
+# shellcheck source=deploy/smoke-kafka.sh
+source deploy/smoke-kafka.sh
+
 setup_podman
 trap teardown EXIT
 build_images
@@ -337,3 +361,4 @@ curl -fsS -m 3 "http://127.0.0.1:$PORT/readyz" >/dev/null || fail "/readyz after
 pass "/readyz still ok after traffic"
 prometheus_check
 graceful_stop
+[[ $KAFKA == 0 ]] || kafka_profile
