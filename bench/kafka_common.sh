@@ -1,3 +1,4 @@
+# shellcheck shell=bash
 # Shared by bench/kafka_cpu.sh and bench/kafka_scaling.sh (sourced, not run): after the caller
 # has set CROSSVIEW_BIN, TANSU, OUT, PRESET, WIDTH and SCENES, it checks for the broker,
 # simulates the scene and makes a random-weight model of WIDTH, and defines MODELS (SCENES
@@ -10,6 +11,7 @@ mkdir -p "$OUT"
 "$CROSSVIEW_BIN" simulate --preset "$PRESET" --frames 600 --seed 11 --out "$OUT/rec.jsonl" 2>/dev/null
 "$CROSSVIEW_BIN" model init --scene-from "$OUT/rec.jsonl" --out "$OUT/model.onnx" --width "$WIDTH" >/dev/null 2>&1
 SCENE=$(head -1 "$OUT/rec.jsonl" | python3 -c 'import json,sys; print(json.load(sys.stdin)["scene"]["name"])')
+# shellcheck disable=SC2153 # SCENES is set by the caller
 MODELS=$(for i in $(seq 0 $((SCENES - 1))); do printf '%s-%d=%s,' "$SCENE" "$i" "$OUT/model.onnx"; done)
 MODELS=${MODELS%,}
 NAMES=$(for i in $(seq 0 $((SCENES - 1))); do printf '%s-%d,' "$SCENE" "$i"; done)

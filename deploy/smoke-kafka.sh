@@ -1,3 +1,4 @@
+# shellcheck shell=bash
 # Sourced by deploy/smoke.sh (step 6 there): the compose `kafka` profile run for real. Uses
 # smoke.sh's COMPOSE, PROJECT, IMAGE, WORK, log/pass/fail/build and the KAFKA_* settings.
 
