@@ -18,7 +18,7 @@ pub fn read_recording(path: impl AsRef<Path>) -> Result<Recording> {
 }
 
 /// [`read_recording`], `strict` or lenient (skipping broken boxes and lines, see
-/// [`RecordingReader::lenient`]), with what was clipped, skipped and dropped.
+/// the module docs), with what was clipped, skipped and dropped.
 pub fn read_recording_with(path: impl AsRef<Path>, strict: bool) -> Result<(Recording, ReadStats)> {
     read_recordings(&[path.as_ref()], strict)
 }

@@ -12,7 +12,7 @@
 //!
 //! Boxes that overlap their image's edge are clipped to the image
 //! ([`Detection::clip_to_image`](crossview_core::Detection::clip_to_image), the one rule shared with the server) and counted in
-//! [`ReadStats::clipped_boxes`]. A [`lenient`](RecordingReader::lenient) reader (the trainer's
+//! [`ReadStats::clipped_boxes`]. A lenient reader (the trainer's
 //! default) skips a broken box or a broken line with a count instead of failing: real
 //! detector output is careless, and one bad box must not abort a 71,000-box recording.
 //!

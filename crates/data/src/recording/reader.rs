@@ -65,7 +65,7 @@ impl ReadStats {
 /// Validation per batch: known camera, no second batch for the same camera and frame, every
 /// detection valid ([`Detection::validate`]) and all appearance vectors of the same length.
 /// After the first error the iterator is fused (yields `None`). A
-/// [`lenient`](Self::lenient) reader skips broken boxes and lines instead (counted in
+/// lenient reader (crate-internal, `lenient()`) skips broken boxes and lines instead (counted in
 /// [`stats`](Self::stats)); only I/O errors end it.
 pub struct RecordingReader<R> {
     source_name: String,

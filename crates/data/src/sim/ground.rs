@@ -40,7 +40,7 @@ pub(crate) fn ground_positions(
 }
 
 /// Ground-plane distances `[n, m]` between the boxes of two views (world units), with
-/// [`UNREACHABLE_M`] where a position is unknown.
+/// 10⁶ (unreachable) where a position is unknown.
 pub fn ground_distances(
     cam_a: &Camera,
     dets_a: &[Detection],

@@ -92,7 +92,7 @@ impl SimConfig {
         }
     }
 
-    /// [`SimConfig::new`] on a built-in scene (see [`PRESETS`]). The `wildtrack` preset
+    /// [`SimConfig::new`] on a built-in scene (`square4`, `wildtrack`, `pair`). The `wildtrack` preset
     /// gets 30 people, which gives about as many boxes per view as WILDTRACK's annotations
     /// (about 15 on average).
     pub fn preset(name: &str) -> Result<Self> {

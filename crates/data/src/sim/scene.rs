@@ -52,7 +52,7 @@ fn posed(name: &str, pos: [f64; 3], yaw: f64, pitch: f64, f: f64) -> CameraConfi
 }
 
 impl SceneConfig {
-    /// A built-in layout (see [`PRESETS`]):
+    /// A built-in layout:
     /// - `square4`: 12x12 m, four 1280x720 cameras 4 m high at the corners, 2 m outside,
     ///   looking at the centre;
     /// - `wildtrack`: 12x36 m, seven 1920x1080 cameras placed like WILDTRACK's (positions,
