@@ -109,13 +109,19 @@ impl Service {
         r
     }
 
-    /// The scene called `name`, or `UnknownScene`.
+    /// The scene called `name`, or `UnknownScene` (counted: a client asked for it).
     pub fn scene(&self, name: &str) -> Result<&Arc<Scene>> {
         self.track(
-            self.scenes
-                .get(name)
+            self.find_scene(name)
                 .ok_or_else(|| crossview_core::Error::UnknownScene(name.to_string()).into()),
         )
+    }
+
+    /// The scene called `name`, if served; not counted as an error when it is not (a
+    /// transport's own bookkeeping, e.g. Kafka mode's scenes by partition, may name scenes
+    /// whose records were already refused and counted).
+    pub(crate) fn find_scene(&self, name: &str) -> Option<&Arc<Scene>> {
+        self.scenes.get(name)
     }
 
     /// Every scene, by name.

@@ -74,6 +74,14 @@ async fn one_replica_publishes_every_batch_skips_malformed_and_resumes_after_res
         1.0,
         "{m}"
     );
+    // The rejected record's unknown scene is counted once, however many statistics reports
+    // (every 100 ms, over the wait for the lag above) the replica handled since.
+    let m = metrics_text(&base).await;
+    assert_eq!(
+        metric(&m, "crossview_errors_total{kind=\"unknown_scene\"}"),
+        1.0,
+        "{m}"
+    );
     // The refused records went to the dead-letter topic, each saying why.
     let dead: StreamConsumer = ClientConfig::new()
         .set("bootstrap.servers", &broker.addr)

@@ -173,12 +173,7 @@ impl Kafka {
             };
             (last, o.read_until(partition))
         };
-        if let Some(s) = self
-            .service
-            .scene_list()
-            .into_iter()
-            .find(|s| s.name() == scene)
-        {
+        if let Some(s) = self.service.find_scene(scene) {
             let dropped = s.restart(last);
             s.read_until(until);
             tracing::info!(

@@ -139,12 +139,7 @@ impl Context {
             let (scenes, forgotten) = lock(&self.offsets).revoke(e.partition());
             dropped_frames += forgotten;
             for name in scenes {
-                if let Some(scene) = self
-                    .service
-                    .scene_list()
-                    .into_iter()
-                    .find(|s| s.name() == name)
-                {
+                if let Some(scene) = self.service.find_scene(&name) {
                     scene.restart(None);
                 }
             }

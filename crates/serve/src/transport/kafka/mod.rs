@@ -138,7 +138,7 @@ pub fn start(service: Arc<Service>, config: KafkaConfig) -> Result<tokio::task::
 /// to wall time).
 fn read_until(service: &Service, scenes: &[String], until: Option<std::time::Instant>) {
     for name in scenes {
-        if let Ok(scene) = service.scene(name) {
+        if let Some(scene) = service.find_scene(name) {
             scene.read_until(until);
         }
     }
