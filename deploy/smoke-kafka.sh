@@ -16,13 +16,6 @@ kafka_owned() {
   echo "$((a + b)) $a $b"
 }
 
-kafka_wait_ready() { # kafka_wait_ready PORT NAME
-  for _ in $(seq 1 120); do
-    curl -fsS -m 2 "http://127.0.0.1:$1/readyz" >/dev/null 2>&1 && return
-    sleep 1
-  done
-  fail "$2 not ready on 127.0.0.1:$1/readyz after 120 s"
-}
 
 # Waits until the replicas own every input partition between them; echoes "total a b".
 kafka_wait_owned() {
@@ -35,18 +28,11 @@ kafka_wait_owned() {
   echo "$owned"
 }
 
-kafka_check_report() { # kafka_check_report FILE LABEL
-  python3 - "$1" "$2" <<'PY' || fail "kafka replay report ($2), see $1"
-import json, sys
-text = open(sys.argv[1]).read()
-r = json.loads(text[text.index("{"):])
-assert r["passed"], r["failures"]
-assert r["frames_lost"] == 0 and r["results"] > 0, r
-print(f"[smoke] kafka replay ({sys.argv[2]}): {r['batches_sent']} batches over "
-      f"{len(r['scenes'])} scenes, {r['results']} results, lost {r['frames_lost']}, "
-      f"p50 {r['latency_complete']['p50_ms']:.1f} ms, p99 {r['latency_complete']['p99_ms']:.1f} ms",
-      file=sys.stderr)
-PY
+
+# podman-compose --profile kafka up -d ARGS, its output added to compose-up-kafka.log.
+kafka_up() {
+  "${COMPOSE[@]}" --profile kafka up -d "$@" >>"$WORK/logs/compose-up-kafka.log" 2>&1 \
+    || { tail -n 30 "$WORK/logs/compose-up-kafka.log" >&2; fail "podman-compose --profile kafka up -d $*"; }
 }
 
 kafka_profile() {
@@ -56,28 +42,20 @@ kafka_profile() {
   # In stages, each with --no-deps: podman 4.3 turns depends_on into --requires and then
   # cannot start a container whose requirement is the exited one-shot topic job ("depends on
   # container ... not found in input list"), and it has no healthy/completed conditions.
-  local up=("${COMPOSE[@]}" --profile kafka up -d) c rc
-  "${up[@]}" broker kafka-topics >"$WORK/logs/compose-up-kafka.log" 2>&1 \
-    || { tail -n 30 "$WORK/logs/compose-up-kafka.log" >&2; fail "podman-compose --profile kafka up broker kafka-topics"; }
-  rc=$(timeout 120 podman wait "${PROJECT}_kafka-topics_1") || fail "the topic job did not finish"
-  [[ $rc -eq 0 ]] || { podman logs "${PROJECT}_kafka-topics_1" >&2; fail "the topic job exited with $rc"; }
+: >"$WORK/logs/compose-up-kafka.log"
+  kafka_up broker kafka-topics
+  wait_job "${PROJECT}_kafka-topics_1" kafka-topics 120
   pass "broker up, topic job created the topics (exit code 0)"
-  "${up[@]}" --no-deps replica-a replica-b >>"$WORK/logs/compose-up-kafka.log" 2>&1 \
-    || { tail -n 30 "$WORK/logs/compose-up-kafka.log" >&2; fail "podman-compose --profile kafka up replica-a replica-b"; }
-  kafka_wait_ready "$CROSSVIEW_REPLICA_A_PORT" replica-a
-  kafka_wait_ready "$CROSSVIEW_REPLICA_B_PORT" replica-b
+  kafka_up --no-deps replica-a replica-b
+  wait_readyz "$CROSSVIEW_REPLICA_A_PORT" replica-a
+  wait_readyz "$CROSSVIEW_REPLICA_B_PORT" replica-b
   pass "replica-a and replica-b ready (/readyz: consumer group joined)"
-  CROSSVIEW_REPLAY_SCENES=$KAFKA_SCENES_BEFORE "${up[@]}" --no-deps kafka-replay \
-    >>"$WORK/logs/compose-up-kafka.log" 2>&1 \
-    || { tail -n 30 "$WORK/logs/compose-up-kafka.log" >&2; fail "podman-compose --profile kafka up kafka-replay"; }
+  CROSSVIEW_REPLAY_SCENES=$KAFKA_SCENES_BEFORE kafka_up --no-deps kafka-replay
 
   log "waiting for the profile's replay client (Kafka, $KAFKA_SCENES_BEFORE)"
   local owned net restarts
-  c=${PROJECT}_kafka-replay_1
-  rc=$(timeout 240 podman wait "$c") || fail "kafka replay client did not finish"
-  podman logs "$c" >"$WORK/logs/kafka-replay.json" 2>"$WORK/logs/kafka-replay.stderr" || true
-  [[ $rc -eq 0 ]] || { tail -n 40 "$WORK/logs/kafka-replay.json" "$WORK/logs/kafka-replay.stderr" >&2; fail "kafka replay client exit code $rc"; }
-  kafka_check_report "$WORK/logs/kafka-replay.json" "before the kill"
+  wait_job "${PROJECT}_kafka-replay_1" kafka-replay 240
+  check_report "$WORK/logs/kafka-replay.out" "kafka replay before the kill"
   pass "kafka-replay (compose service): every frame of $KAFKA_SCENES_BEFORE has a result on 'results'"
   owned=$(kafka_wait_owned)
   [[ ${owned%% *} -eq $KAFKA_PARTITIONS ]] || fail "the replicas own ${owned%% *} of $KAFKA_PARTITIONS input partitions"
@@ -98,7 +76,7 @@ kafka_profile() {
     --frames "$CROSSVIEW_REPLAY_FRAMES" --drain-timeout 60s --json \
     >"$WORK/logs/kafka-replay-after.json" 2>"$WORK/logs/kafka-replay-after.stderr" \
     || { tail -n 40 "$WORK/logs/kafka-replay-after.json" "$WORK/logs/kafka-replay-after.stderr" >&2; fail "kafka replay during the takeover"; }
-  kafka_check_report "$WORK/logs/kafka-replay-after.json" "during the takeover"
+  check_report "$WORK/logs/kafka-replay-after.json" "kafka replay during the takeover"
   pass "every frame of $KAFKA_SCENES_AFTER, replayed from a second container after the kill, has a result"
   owned=$(kafka_wait_owned)
   [[ ${owned%% *} -eq $KAFKA_PARTITIONS ]] || fail "after the takeover the replicas own ${owned%% *} of $KAFKA_PARTITIONS partitions"

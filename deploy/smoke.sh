@@ -204,17 +204,19 @@ compose_up() {
   pass "podman-compose up -d"
 }
 
-wait_ready() {
-  local url=http://127.0.0.1:$PORT
+# Polls 127.0.0.1:PORT/readyz until it answers 200 (at most 120 s).
+wait_readyz() { # wait_readyz PORT NAME
   for _ in $(seq 1 120); do
-    if curl -fsS -m 2 "$url/readyz" >/dev/null 2>&1; then
-      curl -fsS -m 2 "$url/healthz" >/dev/null || fail "/healthz not 200"
-      pass "/readyz and /healthz answer 200 on the published port $PORT"
-      return
-    fi
+    curl -fsS -m 2 "http://127.0.0.1:$1/readyz" >/dev/null 2>&1 && return
     sleep 1
   done
-  fail "server not ready on $url/readyz after 120 s"
+  fail "$2 not ready on 127.0.0.1:$1/readyz after 120 s"
+}
+
+wait_ready() {
+  wait_readyz "$PORT" server
+  curl -fsS -m 2 "http://127.0.0.1:$PORT/healthz" >/dev/null || fail "/healthz not 200"
+  pass "/readyz and /healthz answer 200 on the published port $PORT"
 }
 
 check_container() {
@@ -282,24 +284,38 @@ PY
   pass "/metrics crossview_batches_total{scene=$HTTP_SCENE} moved $before -> $after"
 }
 
-replay_report() {
-  log "waiting for the replay client (gRPC, $REPLAY_SCENES) to finish"
-  local c=${PROJECT}_replay_1 rc
-  rc=$(timeout 180 podman wait "$c") || fail "replay client did not finish"
-  podman logs "$c" >"$WORK/logs/replay.json" 2>"$WORK/logs/replay.stderr" || true
-  [[ $rc -eq 0 ]] || { tail -n 40 "$WORK/logs/replay.json" "$WORK/logs/replay.stderr" >&2; fail "replay client exit code $rc"; }
-  python3 - "$WORK/logs/replay.json" <<'PY' || fail "replay report check"
+# Waits (at most SECS) for the one-shot container C to exit and saves its output as
+# $WORK/logs/NAME.out and NAME.stderr; fails unless it exited 0.
+wait_job() { # wait_job CONTAINER NAME SECS
+  local rc
+  rc=$(timeout "$3" podman wait "$1") || fail "$2 did not finish"
+  podman logs "$1" >"$WORK/logs/$2.out" 2>"$WORK/logs/$2.stderr" || true
+  [[ $rc -eq 0 ]] || { tail -n 40 "$WORK/logs/$2.out" "$WORK/logs/$2.stderr" >&2; fail "$2 exit code $rc"; }
+}
+
+# Checks a load tester's JSON report (log lines before it are skipped): passed, no frame lost,
+# results came back, every batch accepted; prints a summary (with the server's counters when
+# the report compared them).
+check_report() { # check_report FILE LABEL
+  python3 - "$1" "$2" <<'PY' || fail "$2 report check (see $1)"
 import json, sys
 text = open(sys.argv[1]).read()
 r = json.loads(text[text.index("{"):])
 assert r["passed"], r["failures"]
 assert r["frames_lost"] == 0 and r["results"] > 0 and r["batches_accepted"] == r["batches_sent"], r
-print(f"[smoke] replay: {r['batches_sent']} batches over {len(r['scenes'])} scenes, "
+counters = ", ".join(f"{c['metric']}={c['server']}({'ok' if c['matches'] else 'MISMATCH'})"
+                     for c in r.get("server_comparison") or [])
+print(f"[smoke] {sys.argv[2]}: {r['batches_sent']} batches over {len(r['scenes'])} scenes, "
       f"{r['results']} results, lost {r['frames_lost']}, p50 {r['latency_complete']['p50_ms']:.1f} ms, "
-      f"p99 {r['latency_complete']['p99_ms']:.1f} ms, server counters "
-      + ", ".join(f"{c['metric']}={c['server']}({'ok' if c['matches'] else 'MISMATCH'})" for c in r["server_comparison"]),
+      f"p99 {r['latency_complete']['p99_ms']:.1f} ms" + (f", server counters {counters}" if counters else ""),
       file=sys.stderr)
 PY
+}
+
+replay_report() {
+  log "waiting for the replay client (gRPC, $REPLAY_SCENES) to finish"
+  wait_job "${PROJECT}_replay_1" replay 180
+  check_report "$WORK/logs/replay.out" replay
   pass "replay client (compose service, gRPC Push+Subscribe over the compose network) passed, 0 frames lost"
 }
 
@@ -310,13 +326,7 @@ loadtest_http() {
     --scene-names "$LOADTEST_SCENES" --rate 20 --frames 60 --connections 2 --json \
     >"$WORK/logs/loadtest-http.json" 2>"$WORK/logs/loadtest-http.stderr" \
     || { cat "$WORK/logs/loadtest-http.json" "$WORK/logs/loadtest-http.stderr" >&2; fail "HTTP load test"; }
-  python3 - "$WORK/logs/loadtest-http.json" <<'PY' || fail "HTTP load test report"
-import json, sys
-r = json.load(open(sys.argv[1]))
-assert r["passed"] and r["frames_lost"] == 0, r
-print(f"[smoke] http loadtest: {r['batches_sent']} batches, {r['results']} results, "
-      f"p50 {r['latency_complete']['p50_ms']:.1f} ms p99 {r['latency_complete']['p99_ms']:.1f} ms", file=sys.stderr)
-PY
+  check_report "$WORK/logs/loadtest-http.json" "http loadtest"
   pass "HTTP load test (POST + SSE, 2 fresh scenes) passed with 0 frames lost"
 }
 
