@@ -17,6 +17,32 @@ kafka_owned() {
 }
 
 
+# The input partitions a replica owns now (from its /metrics), space-separated.
+kafka_partitions() { # kafka_partitions PORT
+  { curl -fsS -m 5 "http://127.0.0.1:$1/metrics" 2>/dev/null || true; } \
+    | sed -n 's/^crossview_kafka_assigned{.*partition="\([0-9]*\)".*} 1$/\1/p' | tr '\n' ' '
+}
+
+# Scenes of SCENES (comma-separated) that replica-b started on a partition outside OWNED (what
+# it owned before the kill), from its JSON log LOG: the killed replica's scenes it took over.
+kafka_taken_over() { # kafka_taken_over LOG SCENES OWNED
+  python3 - "$@" <<'PY'
+import json, sys
+log, scenes, owned = sys.argv[1], set(sys.argv[2].split(",")), set(sys.argv[3].split())
+taken = set()
+for line in open(log, errors="replace"):
+    try:
+        r = json.loads(line[line.index("{"):])
+    except ValueError:
+        continue
+    f = r.get("fields", r)
+    if (f.get("message") == "kafka: scene (re)starts here" and f.get("scene") in scenes
+            and str(f.get("partition")) not in owned):
+        taken.add(f["scene"])
+print(",".join(sorted(taken)))
+PY
+}
+
 # Waits until the replicas own every input partition between them; echoes "total a b".
 kafka_wait_owned() {
   local owned
@@ -63,6 +89,8 @@ kafka_profile() {
   pass "the replicas own all $KAFKA_PARTITIONS input partitions between them (replica-a $a, replica-b $b)"
 
   log "SIGKILL replica-a through the engine, replay new scenes during the takeover"
+  local b_owned taken
+  b_owned=$(kafka_partitions "$CROSSVIEW_REPLICA_B_PORT")
   podman kill -s KILL "${PROJECT}_replica-a_1" >/dev/null || fail "podman kill -s KILL replica-a"
   pass "replica-a SIGKILLed (podman kill -s KILL)"
   net=$(podman inspect -f '{{range $k, $v := .NetworkSettings.Networks}}{{$k}} {{end}}' "${PROJECT}_replica-b_1" | awk '{print $1}')
@@ -78,6 +106,10 @@ kafka_profile() {
     || { tail -n 40 "$WORK/logs/kafka-replay-after.json" "$WORK/logs/kafka-replay-after.stderr" >&2; fail "kafka replay during the takeover"; }
   check_report "$WORK/logs/kafka-replay-after.json" "kafka replay during the takeover"
   pass "every frame of $KAFKA_SCENES_AFTER, replayed from a second container after the kill, has a result"
+  podman logs "${PROJECT}_replica-b_1" >"$WORK/logs/replica-b.log" 2>&1 || true
+  taken=$(kafka_taken_over "$WORK/logs/replica-b.log" "$KAFKA_SCENES_AFTER" "$b_owned")
+  [[ -n $taken ]] || fail "none of $KAFKA_SCENES_AFTER was on replica-a's partitions (replica-b owned $b_owned): the takeover was not exercised"
+  pass "replica-b took over replica-a's partitions (it owned $b_owned) and served $taken there"
   owned=$(kafka_wait_owned)
   [[ ${owned%% *} -eq $KAFKA_PARTITIONS ]] || fail "after the takeover the replicas own ${owned%% *} of $KAFKA_PARTITIONS partitions"
   read -r _ a b <<<"$owned"

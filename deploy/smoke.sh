@@ -42,10 +42,11 @@ ORT_LIB=.cache/onnxruntime/libonnxruntime.so.1.31.1
 # The replay service drives REPLAY_SCENES; the HTTP checks use HTTP_SCENE meanwhile.
 REPLAY_SCENES=square4-0,square4-1
 # The kafka profile: scenes replayed before the kill, then new ones during the takeover (new
-# scenes, so their frame ids never meet the first replay's).
+# scenes, so their frame ids never meet the first replay's). Eight of them, so that some land
+# on the killed replica's partitions whichever half it owned (one run with four had none).
 KAFKA=${SMOKE_KAFKA:-1}
 KAFKA_SCENES_BEFORE=square4-0,square4-1,square4-2,square4-3
-KAFKA_SCENES_AFTER=square4-4,square4-5,square4-6,square4-7
+KAFKA_SCENES_AFTER=$(seq -s, -f 'square4-%g' 4 11)
 KAFKA_PARTITIONS=8
 HTTP_SCENE=square4-2
 HTTP_FRAMES=5
@@ -168,7 +169,7 @@ make_data() {
 # ---------------------------------------------------------------- 4. compose
 export CROSSVIEW_PORT=$PORT CROSSVIEW_PROMETHEUS_PORT=$PROM_PORT
 export CROSSVIEW_MODELS_DIR=$WORK/run/models CROSSVIEW_REPLAY_DIR=$WORK/run/data
-CROSSVIEW_MODELS=$(for i in 0 1 2 3 4 5 6 7; do printf 'square4-%d=/models/square4.onnx,' "$i"; done)
+CROSSVIEW_MODELS=$(for i in $(seq 0 11); do printf 'square4-%d=/models/square4.onnx,' "$i"; done)
 export CROSSVIEW_MODELS=${CROSSVIEW_MODELS%,}
 export CROSSVIEW_REPLICA_A_PORT=${SMOKE_REPLICA_A_PORT:-18081} CROSSVIEW_REPLICA_B_PORT=${SMOKE_REPLICA_B_PORT:-18082}
 export CROSSVIEW_KAFKA_PARTITIONS=$KAFKA_PARTITIONS
