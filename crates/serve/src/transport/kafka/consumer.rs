@@ -164,8 +164,12 @@ impl Kafka {
 
     /// The first record of `scene` since its partition was (re)assigned: the scene starts
     /// afresh just past its last produced frame (none: from scratch), its sync timeouts
-    /// measured against the partition's input watermark.
+    /// measured against the partition's input watermark. A scene nobody serves is not
+    /// tracked (its records are refused): hostile keys never grow the bookkeeping.
     fn enter_scene(&self, scene: &str, partition: i32) {
+        let Some(s) = self.service.find_scene(scene) else {
+            return;
+        };
         let (last, until) = {
             let mut o = lock(&self.offsets);
             let Some(last) = o.enter_scene(scene, partition) else {
@@ -173,17 +177,15 @@ impl Kafka {
             };
             (last, o.read_until(partition))
         };
-        if let Some(s) = self.service.find_scene(scene) {
-            let dropped = s.restart(last);
-            s.read_until(until);
-            tracing::info!(
-                scene,
-                partition,
-                ?last,
-                dropped,
-                "kafka: scene (re)starts here"
-            );
-        }
+        let dropped = s.restart(last);
+        s.read_until(until);
+        tracing::info!(
+            scene,
+            partition,
+            ?last,
+            dropped,
+            "kafka: scene (re)starts here"
+        );
     }
 
     /// Copies a refused record to the dead-letter topic, if there is one.
