@@ -83,7 +83,7 @@ def owned(port):
 
 
 class Replica:
-    def __init__(self, args, broker, models, name, out):
+    def __init__(self, args, broker, models, name):
         self.port = free_port()
         self.name = name
         cmd = [
@@ -180,8 +180,8 @@ def main():
         for t, n in (("batches", 8), ("results", 1), ("dead", 1)):
             subprocess.run([a.tansu, "topic", "create", t, "--partitions", str(n),
                             "--broker", f"tcp://{broker}"], check=True, capture_output=True)
-        ra = Replica(a, broker, models, "a", a.out)
-        rb = Replica(a, broker, models, "b", a.out)
+        ra = Replica(a, broker, models, "a")
+        rb = Replica(a, broker, models, "b")
         procs += [ra.proc, rb.proc]
         ready_a, ready_b = ra.wait_ready(), rb.wait_ready()
         t = time.time()
@@ -229,7 +229,7 @@ def main():
                 ra.proc.send_signal(signal.SIGKILL)
                 killed_at = time.time()
             if restarted_at is None and now >= a.restart_at:
-                ra2 = Replica(a, broker, models, "a2", a.out)
+                ra2 = Replica(a, broker, models, "a2")
                 procs.append(ra2.proc)
                 restarted_at = time.time()
             at, body = events[i]
