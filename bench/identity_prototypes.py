@@ -4,7 +4,7 @@ compared), on the dumps of `identity_dump` (per frame: ids and every camera pair
 distances; the model's calibration): SPEC §3 pairwise, the union-find baseline, correlation
 clustering (greedy additive edge contraction, camera-exclusive) on several affinities, and its
 average-linkage variant; `--cameras` keeps a camera subset (the others' boxes removed),
-`:VETO` adds the veto as a share of `t` (what ships: gaec:0.35:0.125:0.25), `chains` prints how
+`:VETO` adds the veto as a share of `t` (what ships: gaec:0.4:0.125:0.5; until 2026-12-04 gaec:0.35:0.125:0.25), `chains` prints how
 often pairwise matching is intransitive, `--few` uses another setting on frames with at most N
 cameras reporting. Scores identity-derived ACC / IPAA-100 exactly as `crossview eval`
 (the pairwise and union-find rows reproduce the Rust figures to the last digit).

@@ -188,7 +188,7 @@ fn pairwise_and_identity_rows_and_associate_cover_every_box() {
     ]);
     for label in [
         "pairwise S>=0.40",
-        "identities t=0.35",
+        "identities t=0.40",
         "pairwise S>=0.20",
         "identities t=0.20",
         "frames with every identity right",

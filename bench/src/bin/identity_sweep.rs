@@ -4,23 +4,28 @@
 //! selection sweeps in BENCHMARKS.md ("Identities") are reproducible.
 //!
 //! `identity_sweep MODEL.onnx RECORDING.jsonl [--cameras 0,1,2] [--spread] SETTING...`
-//! where a SETTING is `clustering:T:B` or `union-find:T:B`; `--spread` adds each setting
-//! with one parameter at a time moved by −50 % and +50 %; `--cameras` empties every other
+//! where a SETTING is `clustering:T:B[:VETO]` (the veto as a share of `t`; `inf` = none) or
+//! `union-find:T:B`; `--spread` adds each setting with one parameter at a time (`t`, `b`, and
+//! the clustering's veto share) moved by −50 % and +50 %; `--cameras` empties every other
 //! camera's views (a camera subset).
 use anyhow::{Context, bail};
 
 use crossview_core::association::Mode;
-use crossview_core::identity::IdentityMethod;
+use crossview_core::identity::{IdentityConfig, IdentityMethod};
 use crossview_data::recording::read_recording;
 use crossview_eval::driver::evaluate_settings;
 use crossview_model::OnnxEncoder;
 
-fn parse_setting(s: &str) -> anyhow::Result<(IdentityMethod, f32, f32)> {
+/// One setting: method, `t`, `b` and the clustering's veto share (`None`: the default).
+type Setting = (IdentityMethod, f32, f32, Option<f32>);
+
+fn parse_setting(s: &str) -> anyhow::Result<Setting> {
     let parts: Vec<&str> = s.split(':').collect();
-    let [m, t, b] = parts[..] else {
-        bail!("setting '{s}': expected METHOD:T:B");
-    };
-    Ok((m.parse()?, t.parse()?, b.parse()?))
+    match parts[..] {
+        [m, t, b] => Ok((m.parse()?, t.parse()?, b.parse()?, None)),
+        [m, t, b, v] => Ok((m.parse()?, t.parse()?, b.parse()?, Some(v.parse()?))),
+        _ => bail!("setting '{s}': expected METHOD:T:B or METHOD:T:B:VETO"),
+    }
 }
 
 fn main() -> anyhow::Result<()> {
@@ -55,10 +60,14 @@ fn main() -> anyhow::Result<()> {
     }
     if spread {
         let base = settings.clone();
-        for (m, t, b) in base {
+        for (m, t, b, v) in base {
+            let veto = v.unwrap_or(IdentityConfig::default().veto);
             for k in [0.5, 1.5] {
-                settings.push((m, t * k, b));
-                settings.push((m, t, b * k));
+                settings.push((m, t * k, b, v));
+                settings.push((m, t, b * k, v));
+                if m == IdentityMethod::Clustering {
+                    settings.push((m, t, b, Some(veto * k)));
+                }
             }
         }
     }
@@ -73,19 +82,22 @@ fn main() -> anyhow::Result<()> {
         cameras.as_deref().unwrap_or(&[])
     );
     println!(
-        "| method | t | b | ACC % | IPAA-100 % | identities right % | deciles monotone (3 pts) | precision by decile |"
+        "| method | t | b | veto | ACC % | IPAA-100 % | identities right % | deciles monotone (3 pts) | precision by decile |"
     );
-    println!("|---|---:|---:|---:|---:|---:|---|---|");
+    println!("|---|---:|---:|---:|---:|---:|---:|---|---|");
     println!(
-        "| pairwise S ≥ {:.2} | | | {:.2} | {:.2} | | | |",
+        "| pairwise S ≥ {:.2} | | | | {:.2} | {:.2} | | | |",
         base.threshold,
         100.0 * p.acc,
         100.0 * p.ipaa_100
     );
-    for (method, t, b) in settings {
+    for (method, t, b, veto) in settings {
         let mut cfg = base.clone();
         cfg.identity.method = method;
         cfg.identity.support = b;
+        if let Some(v) = veto {
+            cfg.identity.veto = v;
+        }
         let run = evaluate_settings(&mut enc, &rec, &cfg, &[(Mode::Identities, t)])?;
         let (m, ids) = (&run[0].metrics, &run[0].identities);
         let deciles: Vec<String> = ids
@@ -102,7 +114,8 @@ fn main() -> anyhow::Result<()> {
             })
             .collect();
         println!(
-            "| {method} | {t:.3} | {b:.3} | {:.2} | {:.2} | {:.1} | {} | {} |",
+            "| {method} | {t:.3} | {b:.3} | {:.3} | {:.2} | {:.2} | {:.1} | {} | {} |",
+            cfg.identity.veto,
             100.0 * m.acc,
             100.0 * m.ipaa_100,
             100.0 * ids.correct as f64 / ids.identities.max(1) as f64,

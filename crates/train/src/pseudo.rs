@@ -135,9 +135,21 @@ pub(crate) fn pseudo_labels(
     Ok(PseudoLabels { labels, keep })
 }
 
+/// The identity step's `(t, b, veto)` for pseudo-labels: the setting every training run in
+/// BENCHMARKS.md ("Training") was measured with. The served default moved on 2026-12-04 (chosen
+/// with ensembles in view); a change here changes every run, so it waits for a paired training
+/// measurement.
+const PSEUDO_IDENTITY: (f32, f32, f32) = (0.35, 0.125, 0.25);
+
 /// The identity step's configuration for pseudo-labels under `cal`.
 pub(crate) fn identity_config(cal: &Calibration, opts: &PseudoOptions) -> IdentityConfig {
-    IdentityConfig::new(Some(Arc::new(cal.clone())), opts.match_threshold)
+    let (link_threshold, support, veto) = PSEUDO_IDENTITY;
+    IdentityConfig {
+        link_threshold,
+        support,
+        veto,
+        ..IdentityConfig::new(Some(Arc::new(cal.clone())), opts.match_threshold)
+    }
 }
 
 /// One frame's box count per camera and the SPEC §3 matching (geometry only, nothing

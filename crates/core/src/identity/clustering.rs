@@ -50,9 +50,9 @@ fn order_key(w: f32) -> u32 {
 
 /// The veto, as a share of the link threshold `t`: two clusters never merge while one pair of
 /// their boxes weighs below `−VETO · t` (complete linkage against a clear contradiction, which
-/// a sum over many weak links would otherwise outvote). Chosen from {0, ¼, ½} on the
-/// WILDTRACK training frames (BENCHMARKS.md, "Identities").
-const VETO: f32 = 0.25;
+/// a sum over many weak links would otherwise outvote). Chosen from {0, ¼, ½, none} on the
+/// WILDTRACK training frames under six models (BENCHMARKS.md, "Identities").
+pub(super) const VETO: f32 = 0.5;
 
 /// End of a member list.
 const END: usize = usize::MAX;
@@ -155,9 +155,9 @@ impl Clustering<'_> {
     }
 
     /// Total weight between clusters `r` and `s`, or `None` when one pair of their boxes
-    /// (with evidence) weighs below the veto `−VETO · t`.
+    /// (with evidence) weighs below the veto `−veto · t` ([`IdentityConfig::veto`]).
     fn weight(&self, r: usize, s: usize) -> Option<f32> {
-        let floor = -VETO * self.ev.link_threshold();
+        let floor = self.ev.veto_floor();
         let mut w = 0f32;
         for u in self.members(r) {
             for v in self.members(s) {

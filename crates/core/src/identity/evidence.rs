@@ -152,8 +152,10 @@ impl<'a> Evidence<'a> {
     }
 
     /// The link threshold `t`.
-    pub(super) fn link_threshold(&self) -> f32 {
-        self.cfg.link_threshold
+    /// The weight below which a pair vetoes a merge: `−veto · t` (`−∞` without a veto).
+    pub(super) fn veto_floor(&self) -> f32 {
+        let f = -self.cfg.veto * self.cfg.link_threshold;
+        if f.is_nan() { f32::NEG_INFINITY } else { f }
     }
 
     /// Whether boxes `u`, `v` of different cameras have evidence at all (their camera pair's

@@ -156,9 +156,9 @@ mod clusters {
                         .flat_map(|&i| cb.iter().map(move |&j| (i, j)))
                         .map(|(i, j)| pw(nodes[i], nodes[j]))
                         .collect();
-                    // The veto: no pair below −t/4.
+                    // The veto: no pair below −veto · t.
                     let w: f32 = ws.iter().sum();
-                    if w <= 0.0 || ws.iter().any(|&x| x < -0.25 * cfg.link_threshold) {
+                    if w <= 0.0 || ws.iter().any(|&x| x < -cfg.veto * cfg.link_threshold) {
                         continue;
                     }
                     let names = (ca[0].min(cb[0]), ca[0].max(cb[0]));
@@ -318,7 +318,7 @@ mod repair {
     fn a_clear_contradiction_vetoes_a_merge_the_sum_would_carry() {
         // A0–B0 and A0–C0 and B0–C1 are strong Hungarian pairs, but B0–C0 and A0–C1 are
         // clearly different (score 0): at t = 0.4 adding either C box to {A0, B0} sums to
-        // 0.5 − 0.4 > 0, yet one of its pairs weighs −0.4 < −t/4, so C stays apart.
+        // 0.5 − 0.4 > 0, yet one of its pairs weighs −0.4 < −t/2, so C stays apart.
         let pairs = vec![
             pair(0, 1, array![[0.9f32]], 0.4),
             pair(0, 2, array![[0.9f32, 0.0]], 0.4),
@@ -397,7 +397,7 @@ mod repair {
                     } else {
                         // At most 0.07: a wrong Hungarian pair (a box whose person the
                         // other camera does not see) that two third cameras agree with
-                        // weighs 0.07 − 0.35 + 2 × 0.125 < 0, so it stays apart.
+                        // weighs 0.07 − 0.4 + 2 × 0.125 < 0, so it stays apart.
                         let d = (people[p] as f32 - people[q] as f32).abs() / 255.0;
                         (0.07 * d).min(0.07)
                     }
