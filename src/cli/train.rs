@@ -111,6 +111,14 @@ pub struct TrainArgs {
     /// losses; 1.0 = the paper.
     #[arg(long, default_value_t = 1.0)]
     pub pair_fraction: f32,
+    /// [ours] Fraction of the first stage during which the synchronization loss uses a soft
+    /// assignment (entropy-regularised transport, its temperature falling to 0) instead of
+    /// the Hungarian pairs; 0 = the paper's Hungarian throughout [default: 0].
+    #[arg(long)]
+    pub soft_assignment: Option<f64>,
+    /// [ours] Starting temperature of the soft assignment (max-normalised distance units).
+    #[arg(long, default_value_t = 0.1)]
+    pub soft_temperature: f32,
     /// [ours] Drop training boxes shorter than this fraction of their image height
     /// (0 = keep all; far-away people rarely appear in another camera) [default: 0.08;
     /// paper 0].
@@ -269,6 +277,8 @@ impl TrainArgs {
             max_edges: self.max_edges.unwrap_or(base.max_edges),
             alpha: self.alpha,
             pair_fraction: self.pair_fraction,
+            soft_assignment: self.soft_assignment.unwrap_or(base.soft_assignment),
+            soft_temperature: self.soft_temperature,
             seed: self.seed,
             val_every: self.score_every,
             max_train_seconds: self.max_train_seconds,

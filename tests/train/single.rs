@@ -45,6 +45,40 @@ fn short_run_lowers_the_loss_and_beats_an_untrained_encoder() {
     assert!((0.0..=0.9).contains(&after.threshold));
 }
 
+/// A first stage that starts on the soft assignment (entropy-regularised transport, its
+/// temperature falling to the Hungarian) learns as the Hungarian one does: its loss stays
+/// finite through the soft epochs and the encoder associates far better than an untrained one.
+#[test]
+fn a_soft_assignment_start_learns_too() {
+    let rec = synthetic(64, 6, 1);
+    let val = synthetic(20, 6, 2);
+    let set = TrainingSet::from_recording(&rec.without_ids(), MIN_FRAMES).unwrap();
+    let cfg = TrainConfig {
+        soft_assignment: 0.3,
+        soft_temperature: 0.1,
+        ..small_config(150)
+    };
+    let mut validator = EvalValidator::new(val, candidate_thresholds(), 0.1).unwrap();
+    let untrained = TrainModel::new(cfg.encoder(), 3, cfg.seed).unwrap();
+    let before = validator.validate(&untrained).unwrap();
+    let scoring = Scoring {
+        validator: Some(&mut validator),
+        select: Select::Labelled,
+        ..Scoring::default()
+    };
+    let out = train(&set, &cfg, scoring, &CheckpointOptions::default(), false).unwrap();
+    let soft_end = (0.3f64 * 150.0).round() as usize;
+    let early = out.history[soft_end / 2].syn;
+    assert!(early.is_finite() && early >= 0.0, "soft-stage loss {early}");
+    let after = out.best.unwrap();
+    assert!(
+        after.acc > before.acc + 0.12,
+        "ACC untrained {:.3} trained {:.3}",
+        before.acc,
+        after.acc
+    );
+}
+
 /// The label-free score needs no labels and sees what training did: on frames held out from
 /// training, the synchronized views get closer than the shifted ones and the assignments
 /// close their cycles far more often after a short run than before; the run keeps the epoch

@@ -58,6 +58,15 @@ pub struct TrainConfig {
     /// (1.0 = SPEC §4).
     #[serde(default = "one")]
     pub pair_fraction: f32,
+    /// **[ours]** Fraction of the first stage during which the synchronization loss uses a soft
+    /// assignment (entropy-regularised transport) instead of the Hungarian pairs, its
+    /// temperature falling linearly from [`Self::soft_temperature`] to 0 (0 = off).
+    #[serde(default)]
+    pub soft_assignment: f64,
+    /// **[ours]** Starting temperature of the soft assignment, in units of the max-normalised
+    /// distance.
+    #[serde(default = "soft_temperature")]
+    pub soft_temperature: f32,
     /// Seed of initialisation and sampling.
     pub seed: u64,
     /// Validate every this many epochs (0 = only at the end); needs a validator.
@@ -90,6 +99,8 @@ impl Default for TrainConfig {
             max_edges: 0,
             alpha: 0.1,
             pair_fraction: 1.0,
+            soft_assignment: 0.0,
+            soft_temperature: soft_temperature(),
             seed: 0,
             val_every: 0,
             max_train_seconds: None,
@@ -187,6 +198,18 @@ impl TrainConfig {
         if !(0.0..1.0).contains(&self.warmup) {
             return Err(Error::invalid("train.warmup", "must be within [0, 1)"));
         }
+        if !(0.0..=1.0).contains(&self.soft_assignment) {
+            return Err(Error::invalid(
+                "train.soft_assignment",
+                "must be within [0, 1]",
+            ));
+        }
+        if !(self.soft_temperature.is_finite() && self.soft_temperature >= 0.0) {
+            return Err(Error::invalid(
+                "train.soft_temperature",
+                "must be a finite number ≥ 0",
+            ));
+        }
         if !(0.0..1.0).contains(&self.ema_decay) {
             return Err(Error::invalid("train.ema_decay", "must be within [0, 1)"));
         }
@@ -196,6 +219,10 @@ impl TrainConfig {
 
 fn one() -> f32 {
     1.0
+}
+
+fn soft_temperature() -> f32 {
+    0.1
 }
 
 fn self_train_lr() -> f64 {

@@ -4,7 +4,10 @@
 //! - [`clean`]: **[ours]** dropping static and small detector boxes before training.
 //! - [`sampler`]: anchor/positive/negative triplets.
 //! - [`model`]: the candle encoder + decoder, convertible to [`crossview_model::EncoderWeights`].
-//! - [`losses`]: synchronization, re-projection and edge losses, batched over triplets.
+//! - [`losses`]: synchronization, re-projection and edge losses, batched over triplets
+//!   (`hinge`: their triplet hinge over many pairs at once).
+//! - `transport`: **[ours]** the soft assignment that may replace the Hungarian pairs of the
+//!   synchronization loss early in the first stage.
 //! - [`pseudo`]: **[ours]** pseudo-identity labels from confident identities (self-training).
 //! - [`member`]: one run that advances an epoch at a time, scored, checkpointed, cloned.
 //! - [`population`]: **[ours]** members on every core, the worse half dropped by the
@@ -22,6 +25,7 @@ pub mod clean;
 pub mod config;
 pub mod curve;
 pub mod data;
+mod hinge;
 pub mod label_free;
 pub mod losses;
 pub mod member;
@@ -32,6 +36,7 @@ pub mod run;
 pub mod sampler;
 pub mod state;
 pub mod trainer;
+mod transport;
 pub mod validate;
 
 pub use data::TrainingSet;

@@ -1,21 +1,20 @@
 //! The three self-supervised losses of SPEC §4, batched over many triplets per step:
 //! the synchronization triplet loss on Hungarian-matched boxes, the per-camera re-projection
 //! L1 loss, and the edge triplet loss on pseudo-persons between matched pairs.
-use candle_core::{D, Tensor};
+use candle_core::Tensor;
 use ndarray::{ArrayView2, s};
 use rand::Rng;
 use rand::seq::index::sample;
 
 use crate::data::{Image, TrainingSet};
+use crate::hinge::HingeSet;
 use crate::model::{TrainModel, ce};
 use crate::pseudo::PseudoLabels;
 use crate::sampler::Triplet;
+use crate::transport::soft_assignment;
 use crossview_core::distances::{euclidean_distances, normalized_distance};
 use crossview_core::matching::hungarian;
 use crossview_core::{Error, Result};
-
-/// Triplet margin (SPEC §4).
-pub(crate) const MARGIN: f32 = 1.0;
 
 /// Knobs of the loss computation that trade fidelity for speed.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -30,6 +29,9 @@ pub(crate) struct LossOptions {
     /// 1.0 = SPEC §4 (all pairs). Lower values ignore forced matches between boxes that have
     /// no counterpart (false detections, people seen by one camera only).
     pub pair_fraction: f32,
+    /// **[ours]** Temperature of the synchronization loss's soft assignment
+    /// ([`crate::transport`]); `None` = the Hungarian pairs (SPEC §4).
+    pub temperature: Option<f32>,
 }
 
 impl Default for LossOptions {
@@ -38,6 +40,7 @@ impl Default for LossOptions {
             max_edges: 0,
             alpha: 0.1,
             pair_fraction: 1.0,
+            temperature: None,
         }
     }
 }
@@ -105,15 +108,16 @@ pub(crate) fn edge_boxes(
         .collect()
 }
 
-/// Hungarian pairs between two images on the detached, max-normalised distance (SPEC §3),
-/// fusing appearance when both images carry it.
-pub(crate) fn match_images(
+/// The detached, max-normalised distance between two images' boxes (SPEC §3), fusing
+/// appearance when both images carry it: what the Hungarian pairs (and the soft assignment)
+/// of the synchronization loss minimise.
+fn image_costs(
     emb_a: ArrayView2<f32>,
     emb_b: ArrayView2<f32>,
     img_a: &Image,
     img_b: &Image,
     alpha: f32,
-) -> Vec<(usize, usize)> {
+) -> ndarray::Array2<f32> {
     let dg = euclidean_distances(emb_a, emb_b);
     let da = match (&img_a.appearance, &img_b.appearance) {
         (Some(a), Some(b)) => {
@@ -130,79 +134,7 @@ pub(crate) fn match_images(
         }
         _ => None,
     };
-    let d = normalized_distance(&dg, da.as_ref(), alpha);
-    hungarian(d.view())
-}
-
-/// Pairs of embedding rows whose mean distance forms one side of a triplet hinge:
-/// `delta[t] = mean_pos d - mean_neg d`, `loss = Σ_t mask[t] · relu(delta[t] + margin) / T`.
-#[derive(Debug, Clone, Default)]
-pub(crate) struct HingeSet {
-    left: Vec<u32>,
-    right: Vec<u32>,
-    /// `(triplet, coefficient)` per pair.
-    coef: Vec<(usize, f32)>,
-    /// Triplets with both a positive and a negative side.
-    valid: Vec<bool>,
-}
-
-impl HingeSet {
-    /// An empty set for `triplets` triplets.
-    pub fn new(triplets: usize) -> Self {
-        HingeSet {
-            valid: vec![false; triplets],
-            ..Default::default()
-        }
-    }
-
-    /// Adds triplet `t`'s positive pairs and negative pairs (row indices into one
-    /// embedding matrix). A triplet counts only when both lists are non-empty.
-    pub fn add(&mut self, t: usize, pos: &[(u32, u32)], neg: &[(u32, u32)]) {
-        if pos.is_empty() || neg.is_empty() {
-            return;
-        }
-        self.valid[t] = true;
-        for (list, sign) in [(pos, 1.0f32), (neg, -1.0f32)] {
-            let c = sign / list.len() as f32;
-            for &(l, r) in list {
-                self.left.push(l);
-                self.right.push(r);
-                self.coef.push((t, c));
-            }
-        }
-    }
-
-    /// True when no triplet contributes.
-    pub fn is_empty(&self) -> bool {
-        self.left.is_empty()
-    }
-
-    /// The hinge loss summed over valid triplets and divided by `divisor` (the batch size).
-    pub fn loss(&self, emb: &Tensor, divisor: usize) -> Result<Tensor> {
-        let dev = emb.device();
-        let t = self.valid.len();
-        if self.is_empty() {
-            return Tensor::zeros((), candle_core::DType::F32, dev).map_err(ce);
-        }
-        let p = self.left.len();
-        let mut m = vec![0f32; t * p];
-        for (i, &(tri, c)) in self.coef.iter().enumerate() {
-            m[tri * p + i] = c;
-        }
-        let mask: Vec<f32> = self.valid.iter().map(|&v| f32::from(u8::from(v))).collect();
-        let run = || -> candle_core::Result<Tensor> {
-            let l = Tensor::from_slice(&self.left, p, dev)?;
-            let r = Tensor::from_slice(&self.right, p, dev)?;
-            let diff = (emb.index_select(&l, 0)? - emb.index_select(&r, 0)?)?;
-            let d = (diff.sqr()?.sum_keepdim(D::Minus1)? + 1e-12)?.sqrt()?; // [P, 1]
-            let m = Tensor::from_vec(m, (t, p), dev)?;
-            let delta = m.matmul(&d)?.squeeze(1)?; // [T]
-            let hinge = (delta + MARGIN as f64)?.relu()?;
-            let mask = Tensor::from_vec(mask, t, dev)?;
-            (hinge * mask)?.sum_all()? / divisor as f64
-        };
-        run().map_err(ce)
-    }
+    normalized_distance(&dg, da.as_ref(), alpha)
 }
 
 /// `Σ_i w_i Σ_c |pred_ic - target_ic|`: the re-projection L1 with per-box weights
@@ -343,16 +275,22 @@ fn select_pairs<R: Rng>(
         }
         let view = |start: usize, n: usize| host.slice(s![start..start + n, ..]);
         let va = view(o[0], ia.boxes.len());
-        let mut sides: Vec<Vec<(u32, u32)>> = Vec::with_capacity(2);
+        let mut sides: Vec<Vec<(u32, u32, f32)>> = Vec::with_capacity(2);
         let mut edge_sides: Vec<Vec<(u32, u32)>> = Vec::with_capacity(2);
         for (other, start, r) in [(ip, o[1], tr.positive), (ineg, o[2], tr.negative)] {
-            let pairs = match_images(va, view(start, other.boxes.len()), ia, other, opts.alpha);
-            sides.push(
-                pairs
-                    .iter()
-                    .map(|&(a, b)| ((o[0] + a) as u32, (start + b) as u32))
+            let cost = image_costs(va, view(start, other.boxes.len()), ia, other, opts.alpha);
+            let pairs = hungarian(cost.view());
+            let rows = |a: usize, b: usize| ((o[0] + a) as u32, (start + b) as u32);
+            sides.push(match opts.temperature {
+                Some(eps) => soft_assignment(cost.view(), eps)
+                    .into_iter()
+                    .map(|(a, b, w)| (rows(a, b).0, rows(a, b).1, w))
                     .collect(),
-            );
+                None => pairs
+                    .iter()
+                    .map(|&(a, b)| (rows(a, b).0, rows(a, b).1, 1.0))
+                    .collect(),
+            });
             let edges = edge_indices(pairs.len(), opts.max_edges, rng);
             let mut list = Vec::with_capacity(edges.len());
             for (l, r_box) in edge_boxes(&ia.boxes, &other.boxes, &pairs, &edges) {
@@ -365,7 +303,7 @@ fn select_pairs<R: Rng>(
             }
             edge_sides.push(list);
         }
-        sel.syn.add(ti, &sides[0], &sides[1]);
+        sel.syn.add_weighted(ti, &sides[0], &sides[1]);
         sel.edge.add(ti, &edge_sides[0], &edge_sides[1]);
     }
     sel
@@ -501,6 +439,16 @@ mod tests {
         let pairs = [(0, 0), (1, 2)];
         let e = edge_boxes(&a, &b, &pairs, &[(0, 1)]);
         assert_eq!(e, vec![([2.0, 1.0, 4.0, 4.0], [102.0, 1.0, 104.0, 4.0])]);
+    }
+
+    fn match_images(
+        emb_a: ArrayView2<f32>,
+        emb_b: ArrayView2<f32>,
+        img_a: &Image,
+        img_b: &Image,
+        alpha: f32,
+    ) -> Vec<(usize, usize)> {
+        hungarian(image_costs(emb_a, emb_b, img_a, img_b, alpha).view())
     }
 
     #[test]

@@ -19,6 +19,7 @@ use crate::model::{TrainModel, ce};
 use crate::pseudo::{PseudoLabels, pseudo_labels};
 use crate::sampler::{MIN_FRAMES, TripletSampler};
 use crate::state::{Best, EpochRecord, RunState, Select, TrainOutcome};
+use crate::transport::temperature;
 use crossview_core::{Error, Result};
 use crossview_model::EncoderWeights;
 
@@ -271,6 +272,11 @@ impl<'s> Member<'s> {
             max_edges: cfg.max_edges,
             alpha: cfg.alpha,
             pair_fraction: cfg.pair_fraction,
+            temperature: if epoch <= cfg.epochs {
+                temperature(epoch, cfg.epochs, cfg.soft_assignment, cfg.soft_temperature)
+            } else {
+                None
+            },
         };
         let (set, labels) = match &self.restricted {
             Some((s, l)) => (s, Some(l)),
