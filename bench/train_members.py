@@ -60,7 +60,11 @@ def seed_rows(d, train, gt, val, s):
         for m in range(1, len(alive) + 1):
             rows[f"halving {name}, best {m}"] = subs[tuple(sorted(alive[:m]))]
     rows["exported"] = {"gt": scores(f"{d}/s{s}.onnx", gt, f"{out}/export-gt.json"), "val": scores(f"{d}/s{s}.onnx", val, f"{out}/export-val.json")}
-    rows["labelled choice"] = max(subs.values(), key=lambda r: r["val"][0][0])
+    rows["best member by key"] = subs[(by_key[0],)]
+    label = max(subs, key=lambda sub: subs[sub]["val"][0][0])
+    rows["labelled choice"] = subs[label]
+    keys = ", ".join(f"{100 * best[i]:.2f} ({i})" for i in by_key)
+    rows["_about"] = f"keys {keys}; labelled choice m{''.join(map(str, label))}"
     return rows
 
 
@@ -71,11 +75,21 @@ def main():
     print("| choice | GT pairwise | GT identities | VAL pairwise | VAL identities | VAL worst pairwise ACC |")
     print("|---|---|---|---|---|---|")
     for name in all_rows[seeds[0]]:
+        if name.startswith("_"):
+            continue
         v = [all_rows[s][name] for s in seeds if name in all_rows[s]]
         mean = lambda d_, i: (st.mean(x[d_][i][0] for x in v), st.mean(x[d_][i][1] for x in v))
         print(f"| {name} | {f(mean('gt', 0))} | {f(mean('gt', 1))} | {f(mean('val', 0))} | {f(mean('val', 1))} | {min(x['val'][0][0] for x in v):.2f} |")
+    print()
+    print("| seed | member 0: VAL pairwise / identities | best member by key | **exported: pairwise** | **identities** | labelled choice: pairwise | gap | about |")
+    print("|---:|---|---|---|---|---|---:|---|")
     for s in seeds:
-        print(f"seed {s}: exported VAL {f(all_rows[s]['exported']['val'][0])} pairwise, {f(all_rows[s]['exported']['val'][1])} identities")
+        r = all_rows[s]
+        both = lambda x: f"{f(x['val'][0])} / {f(x['val'][1])}"
+        gap = r["exported"]["val"][0][0] - r["labelled choice"]["val"][0][0]
+        print(f"| {s} | {both(r['member 0 (--population 1)'])} | {both(r['best member by key'])} | "
+              f"{f(r['exported']['val'][0])} | {f(r['exported']['val'][1])} | "
+              f"{f(r['labelled choice']['val'][0])} | {gap:+.2f} | {r['_about']} |")
 
 
 if __name__ == "__main__":
