@@ -9,7 +9,9 @@ use crossview_train::TrainModel;
 use crossview_train::TrainingSet;
 use crossview_train::label_free::LabelFreeScorer;
 use crossview_train::sampler::MIN_FRAMES;
-use crossview_train::trainer::{CheckpointOptions, Scoring, Select, TrainConfig, Validator, train};
+use crossview_train::trainer::{
+    CheckpointOptions, Scoring, Select, TrainConfig, TrainOutcome, ValScores, Validator, train,
+};
 use crossview_train::validate::{CandleEncoder, EvalValidator, candidate_thresholds};
 
 use rand::{Rng, SeedableRng};
@@ -17,12 +19,12 @@ use rand_chacha::ChaCha8Rng;
 
 use crate::fixtures::{small_config, synthetic};
 
-#[test]
-fn short_run_lowers_the_loss_and_beats_an_untrained_encoder() {
+/// Trains `cfg` on the small synthetic scene, choosing the epoch on labelled validation
+/// frames; returns the untrained encoder's validation scores and the run.
+fn train_against_untrained(cfg: &TrainConfig) -> (ValScores, TrainOutcome) {
     let rec = synthetic(64, 6, 1);
     let val = synthetic(20, 6, 2);
     let set = TrainingSet::from_recording(&rec.without_ids(), MIN_FRAMES).unwrap();
-    let cfg = small_config(150);
     let mut validator = EvalValidator::new(val, candidate_thresholds(), 0.1).unwrap();
     let untrained = TrainModel::new(cfg.encoder(), 3, cfg.seed).unwrap();
     let before = validator.validate(&untrained).unwrap();
@@ -31,7 +33,13 @@ fn short_run_lowers_the_loss_and_beats_an_untrained_encoder() {
         select: Select::Labelled,
         ..Scoring::default()
     };
-    let out = train(&set, &cfg, scoring, &CheckpointOptions::default(), false).unwrap();
+    let out = train(&set, cfg, scoring, &CheckpointOptions::default(), false).unwrap();
+    (before, out)
+}
+
+#[test]
+fn short_run_lowers_the_loss_and_beats_an_untrained_encoder() {
+    let (before, out) = train_against_untrained(&small_config(150));
     let first = out.history.first().unwrap().total;
     let last = out.history.last().unwrap().total;
     assert!(last < 0.7 * first, "loss {first} -> {last}");
@@ -50,23 +58,12 @@ fn short_run_lowers_the_loss_and_beats_an_untrained_encoder() {
 /// finite through the soft epochs and the encoder associates far better than an untrained one.
 #[test]
 fn a_soft_assignment_start_learns_too() {
-    let rec = synthetic(64, 6, 1);
-    let val = synthetic(20, 6, 2);
-    let set = TrainingSet::from_recording(&rec.without_ids(), MIN_FRAMES).unwrap();
     let cfg = TrainConfig {
         soft_assignment: 0.3,
         soft_temperature: 0.1,
         ..small_config(150)
     };
-    let mut validator = EvalValidator::new(val, candidate_thresholds(), 0.1).unwrap();
-    let untrained = TrainModel::new(cfg.encoder(), 3, cfg.seed).unwrap();
-    let before = validator.validate(&untrained).unwrap();
-    let scoring = Scoring {
-        validator: Some(&mut validator),
-        select: Select::Labelled,
-        ..Scoring::default()
-    };
-    let out = train(&set, &cfg, scoring, &CheckpointOptions::default(), false).unwrap();
+    let (before, out) = train_against_untrained(&cfg);
     let soft_end = (0.3f64 * 150.0).round() as usize;
     let early = out.history[soft_end / 2].syn;
     assert!(early.is_finite() && early >= 0.0, "soft-stage loss {early}");

@@ -280,17 +280,16 @@ fn select_pairs<R: Rng>(
         for (other, start, r) in [(ip, o[1], tr.positive), (ineg, o[2], tr.negative)] {
             let cost = image_costs(va, view(start, other.boxes.len()), ia, other, opts.alpha);
             let pairs = hungarian(cost.view());
-            let rows = |a: usize, b: usize| ((o[0] + a) as u32, (start + b) as u32);
-            sides.push(match opts.temperature {
-                Some(eps) => soft_assignment(cost.view(), eps)
+            let weighted = match opts.temperature {
+                Some(eps) => soft_assignment(cost.view(), eps),
+                None => pairs.iter().map(|&(a, b)| (a, b, 1.0)).collect(),
+            };
+            sides.push(
+                weighted
                     .into_iter()
-                    .map(|(a, b, w)| (rows(a, b).0, rows(a, b).1, w))
+                    .map(|(a, b, w)| ((o[0] + a) as u32, (start + b) as u32, w))
                     .collect(),
-                None => pairs
-                    .iter()
-                    .map(|&(a, b)| (rows(a, b).0, rows(a, b).1, 1.0))
-                    .collect(),
-            });
+            );
             let edges = edge_indices(pairs.len(), opts.max_edges, rng);
             let mut list = Vec::with_capacity(edges.len());
             for (l, r_box) in edge_boxes(&ia.boxes, &other.boxes, &pairs, &edges) {

@@ -272,11 +272,8 @@ impl<'s> Member<'s> {
             max_edges: cfg.max_edges,
             alpha: cfg.alpha,
             pair_fraction: cfg.pair_fraction,
-            temperature: if epoch <= cfg.epochs {
-                temperature(epoch, cfg.epochs, cfg.soft_assignment, cfg.soft_temperature)
-            } else {
-                None
-            },
+            // `None` past the soft fraction of the first stage, so in self-training too.
+            temperature: temperature(epoch, cfg.epochs, cfg.soft_assignment, cfg.soft_temperature),
         };
         let (set, labels) = match &self.restricted {
             Some((s, l)) => (s, Some(l)),

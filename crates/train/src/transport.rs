@@ -171,6 +171,8 @@ mod tests {
         assert!(temperature(23, 100, 0.25, 0.2).unwrap() > MIN_TEMPERATURE);
         assert_eq!(temperature(24, 100, 0.25, 0.2), None, "below the minimum");
         assert_eq!(temperature(26, 100, 0.25, 0.2), None);
+        // Past the first stage (self-training) even a whole-stage fraction hands over.
+        assert_eq!(temperature(101, 100, 1.0, 0.2), None);
         assert_eq!(temperature(1, 100, 0.0, 0.2), None);
         assert_eq!(temperature(1, 100, 0.25, 0.0), None);
     }

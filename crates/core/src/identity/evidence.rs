@@ -151,7 +151,6 @@ impl<'a> Evidence<'a> {
         (self.entry_confidence(u, v) - self.cfg.link_threshold).min(0.0)
     }
 
-    /// The link threshold `t`.
     /// The weight below which a pair vetoes a merge: `−veto · t` (`−∞` without a veto).
     pub(super) fn veto_floor(&self) -> f32 {
         let f = -self.cfg.veto * self.cfg.link_threshold;
