@@ -78,6 +78,10 @@ pub struct CalibrateArgs {
     /// Seed of the time-shift draws.
     #[arg(long, default_value_t = 0, env = "CROSSVIEW_SEED")]
     pub seed: u64,
+    /// Frames per second of the recording (default: the rate the model was trained at, else
+    /// 2); a faster one is thinned as training thins it (`crossview train --fps`).
+    #[arg(long)]
+    pub fps: Option<f64>,
 }
 
 /// Options of `crossview model init`.
@@ -139,7 +143,14 @@ fn check_match_threshold(t: f32) -> anyhow::Result<()> {
 fn calibrate(a: CalibrateArgs) -> anyhow::Result<()> {
     check_match_threshold(a.match_threshold)?;
     let (ensemble, mut meta) = export::read_ensemble(&a.model)?;
-    fit_calibration(&ensemble, &mut meta, &a.data, a.match_threshold, a.seed)?;
+    fit_calibration(
+        &ensemble,
+        &mut meta,
+        &a.data,
+        a.match_threshold,
+        a.seed,
+        a.fps,
+    )?;
     meta.validate(&a.out.display().to_string())?;
     write_ensemble_onnx(&a.out, &ensemble, &meta)?;
     println!(
@@ -157,10 +168,22 @@ fn fit_calibration(
     data: &PathBuf,
     match_threshold: f32,
     seed: u64,
+    fps: Option<f64>,
 ) -> anyhow::Result<()> {
     let recording = crossview_data::recording::read_recording(data)?;
     super::eval::check_scene(&recording.scene, meta)?;
     let mut set = crossview_train::TrainingSet::from_recording(&recording, 1)?;
+    // Time-shifted pairs as far apart in seconds as in training: the declared rate, else
+    // the one the model was trained at.
+    let trained_fps = meta
+        .extra
+        .get("crossview.train_fps")
+        .and_then(|f| serde_json::from_str::<serde_json::Value>(f).ok())
+        .and_then(|v| v["fps"].as_f64());
+    let fps = fps
+        .or(trained_fps)
+        .unwrap_or(crossview_train::data::REFERENCE_FPS);
+    set.thin_to_reference_rate(fps, 1)?;
     // The boxes the model was trained on: its own training filter, when it records one.
     let filter: BoxFilter = meta
         .extra
@@ -234,7 +257,7 @@ fn combine(a: CombineArgs) -> anyhow::Result<()> {
         serde_json::Value::Array(sources).to_string(),
     );
     match &a.data {
-        Some(data) => fit_calibration(&ensemble, &mut meta, data, a.match_threshold, a.seed)?,
+        Some(data) => fit_calibration(&ensemble, &mut meta, data, a.match_threshold, a.seed, None)?,
         None => eprintln!(
             "no --data: the ensemble carries no calibration (identities use S); \
              `crossview model calibrate` can add it"

@@ -41,7 +41,8 @@ pub struct SimulateArgs {
     /// Target crowd density in people per m² of the area (instead of --people).
     #[arg(long)]
     pub density: Option<f64>,
-    /// Frames per second.
+    /// Frames per second (train on such a recording with `crossview train --fps` of the
+    /// same rate).
     #[arg(long, default_value_t = 10.0)]
     pub fps: f64,
     /// Id of the first frame.

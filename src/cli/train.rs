@@ -132,6 +132,12 @@ pub struct TrainArgs {
     /// Frame distance (positions in the recording) at which `--drop-static-iou` looks.
     #[arg(long, default_value_t = 10)]
     pub static_offset: usize,
+    /// [ours] Frames per second of the training recording. The method's negatives lie 5–19
+    /// frames from their anchor at 2 frames per second (WILDTRACK's rate): a faster
+    /// recording trains on every round(fps / 2)-th frame so that they stay seconds apart
+    /// (the simulator writes 10 by default).
+    #[arg(long, default_value_t = crossview_train::data::REFERENCE_FPS, env = "CROSSVIEW_TRAIN_FPS")]
+    pub fps: f64,
     /// [ours] Fraction of the recording's frames, at its end, held out from training to
     /// score each epoch without labels (0 = no label-free scoring).
     #[arg(long, default_value_t = 0.1)]
@@ -399,6 +405,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         data_name: args.data_name.clone(),
         config: args.config(),
         filter,
+        fps: args.fps,
         holdout: args.holdout,
         select: match args.select {
             SelectArg::LabelFree => Select::LabelFree,

@@ -1,6 +1,7 @@
 //! `crossview train` as a user runs it: writes the ONNX model (with metadata; the epoch chosen
 //! without labels on held-out frames), the SVG curve and the history; records the training-box
-//! filter; refuses a one-camera recording and a filter that leaves no boxes clearly.
+//! filter and the declared frame rate; refuses a one-camera recording, a filter that leaves no
+//! boxes and a rate that leaves too few frames clearly.
 use std::path::Path;
 use std::process::{Command, Output};
 
@@ -244,4 +245,43 @@ fn box_filter_is_recorded_and_an_empty_result_is_refused() {
     let st = train(&["--min-box-height", "1.5"], &out);
     assert!(!st.status.success());
     assert!(String::from_utf8_lossy(&st.stderr).contains("--min-box-height"));
+}
+
+#[test]
+fn a_faster_recording_trains_on_every_nth_frame_and_records_its_rate() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("train.jsonl");
+    write_recording(&data, &recording(2, 60, false)).unwrap();
+    let small = [
+        "--epochs",
+        "1",
+        "--width",
+        "16",
+        "--fourier-features",
+        "8",
+        "--camera-dim",
+        "8",
+        "--self-train-epochs",
+        "0",
+        "--population",
+        "1",
+    ];
+    // 10 frames per second: one frame in 5, 12 of 60 (too few to hold any out: a warning).
+    let out = dir.path().join("m.onnx");
+    let st = train_ok(&data, &out, &[&small[..], &["--fps", "10"]].concat());
+    let log = String::from_utf8_lossy(&st.stderr);
+    assert!(log.contains("one frame in 5"), "{log}");
+    let (_, meta) = read_ensemble(&out).unwrap();
+    let rate: serde_json::Value = serde_json::from_str(&meta.extra["crossview.train_fps"]).unwrap();
+    assert_eq!(rate["fps"], 10.0);
+    assert_eq!(rate["frame_step"], 5);
+    // 30 per second leaves 4 frames: refused, naming the rate; so is a rate that is no rate.
+    for (fps, says) in [("30", "30 fps"), ("0", "fps"), ("NaN", "fps")] {
+        let out = dir.path().join(format!("no-{fps}.onnx"));
+        let st = train(&data, &out, &[&small[..], &["--fps", fps]].concat());
+        assert!(!st.status.success(), "--fps {fps}");
+        let err = String::from_utf8_lossy(&st.stderr);
+        assert!(err.contains(says), "--fps {fps}: {err}");
+        assert!(!out.exists());
+    }
 }

@@ -13,6 +13,7 @@ use crate::TrainingSet;
 use crate::calibrate::calibrate;
 use crate::clean::BoxFilter;
 use crate::curve::write_svg;
+use crate::data::frame_step;
 use crate::label_free::LabelFreeScorer;
 use crate::population::{PopulationOptions, PopulationOutcome, train_population};
 use crate::sampler::MIN_FRAMES;
@@ -43,6 +44,9 @@ pub struct RunOptions {
     pub config: TrainConfig,
     /// The training-box cleaning.
     pub filter: BoxFilter,
+    /// **[ours]** Frames per second of the training recording: a faster one trains on every
+    /// [`frame_step`]-th frame, so negatives stay seconds away ([`REFERENCE_FPS`]).
+    pub fps: f64,
     /// Share of the last frames held out for the label-free score (0 = none).
     pub holdout: f64,
     /// What chooses the exported epoch.
@@ -150,6 +154,7 @@ pub fn run(opts: RunOptions) -> Result<RunReport> {
     export(&opts.out, &ensemble, meta, &set, &opts)?;
     let curve = write_curve_and_history(&opts, &outcome, &data_name)?;
     let mut summary = summary(&outcome, threshold);
+    warn_if_unsynchronized(&outcome, opts.fps);
     if let Some(p) = &population {
         summary.push_str(&format!("; population: {}", p.summary()));
         let m = ensemble.members().len();
@@ -308,6 +313,13 @@ fn read_training_set(opts: &RunOptions) -> Result<(Recording, TrainingSet, Strin
             e.report()
         ))
     })?;
+    set.thin_to_reference_rate(opts.fps, MIN_FRAMES)
+        .map_err(|e| match e {
+            Error::Training(m) => {
+                Error::Training(format!("training data {}: {m}", data_label(&opts.data)))
+            }
+            e => e,
+        })?;
     let filter = &opts.filter;
     let removed = filter.apply(&mut set);
     if !filter.is_off() {
@@ -435,6 +447,11 @@ fn metadata(
         serde_json::to_string(&opts.filter).unwrap_or_default(),
     );
     extra.insert(
+        "crossview.train_fps".into(),
+        serde_json::json!({"fps": opts.fps, "frame_step": frame_step(opts.fps).unwrap_or(1)})
+            .to_string(),
+    );
+    extra.insert(
         "crossview.selection".into(),
         serde_json::json!({
             "by": match out.selected_by {
@@ -513,6 +530,28 @@ fn chosen_threshold(out: &TrainOutcome) -> Option<f32> {
     match out.selected_by? {
         Select::LabelFree => None,
         Select::Labelled => out.best.map(|s| s.threshold),
+    }
+}
+
+/// Synchronization accuracy of the exported weights (label-free) below which the run learnt
+/// no geometry: chance is 0.5.
+const NO_SIGNAL_SYNC_ACC: f64 = 0.6;
+
+/// Warns when the exported weights tell synchronized images from time-shifted ones barely
+/// better than chance: the usual cause is a recording faster than the `fps` it was declared
+/// at (negatives then lie a fraction of a second away).
+fn warn_if_unsynchronized(out: &TrainOutcome, fps: f64) {
+    if let Some(lf) = out.label_free
+        && lf.sync_acc < NO_SIGNAL_SYNC_ACC
+    {
+        tracing::warn!(
+            sync_acc = lf.sync_acc,
+            fps,
+            "the model tells synchronized images from time-shifted ones barely better than \
+             chance: it has learnt little geometry. If the recording runs faster than {fps} \
+             frames per second, pass its rate with --fps; people must move between frames \
+             that are seconds apart"
+        );
     }
 }
 
