@@ -2,6 +2,8 @@
 //! pairs linked to the reference gives each camera's offset, the pair that disagrees most is
 //! dropped while it disagrees by more than [`OffsetConfig::outlier_steps`], and cameras no
 //! confident pair reaches stay unknown.
+use nalgebra::{DMatrix, DVector};
+
 use super::{CameraOffset, OffsetConfig, OffsetEstimate, PairProfile, PairSummary, Unknown};
 
 /// A z-score above this adds no more weight (the deepest pairs would otherwise drown the rest).
@@ -127,66 +129,37 @@ fn component(num_cameras: usize, anchor: usize, edges: &[Edge]) -> Vec<bool> {
 }
 
 /// Weighted least squares `min Σ w (o_b − o_a − δ)²` with `o_anchor = 0`, over the cameras in
-/// `member` (others stay 0). Normal equations solved by Gaussian elimination (a few cameras).
+/// `member` (others stay 0): the normal equations (a weighted graph Laplacian with the anchor's
+/// row and column removed, positive definite for a connected component) solved by Cholesky.
 fn least_squares(num_cameras: usize, anchor: usize, member: &[bool], edges: &[Edge]) -> Vec<f64> {
     let unknowns: Vec<usize> = (0..num_cameras)
         .filter(|&c| member[c] && c != anchor)
         .collect();
     let index = |c: usize| unknowns.iter().position(|&u| u == c);
     let k = unknowns.len();
-    let mut m = vec![vec![0.0f64; k + 1]; k];
+    let mut lhs = DMatrix::<f64>::zeros(k, k);
+    let mut rhs = DVector::<f64>::zeros(k);
     for e in edges.iter().filter(|e| member[e.a] && member[e.b]) {
         let (ia, ib) = (index(e.a), index(e.b));
         for (i, sign) in [(ia, -1.0), (ib, 1.0)] {
             let Some(i) = i else { continue };
-            m[i][i] += e.weight;
-            m[i][k] += sign * e.weight * e.delta;
+            lhs[(i, i)] += e.weight;
+            rhs[i] += sign * e.weight * e.delta;
         }
         if let (Some(ia), Some(ib)) = (ia, ib) {
-            m[ia][ib] -= e.weight;
-            m[ib][ia] -= e.weight;
+            lhs[(ia, ib)] -= e.weight;
+            lhs[(ib, ia)] -= e.weight;
         }
     }
-    let x = gauss(m);
+    // Not positive definite cannot happen for a connected component; all 0 keeps it total.
+    let x = lhs
+        .cholesky()
+        .map_or_else(|| DVector::zeros(k), |c| c.solve(&rhs));
     let mut offsets = vec![0.0; num_cameras];
     for (u, &c) in unknowns.iter().enumerate() {
         offsets[c] = x[u];
     }
     offsets
-}
-
-/// Solves the augmented system `m` (`k × (k + 1)`) with partial pivoting; a singular column
-/// gives 0 (cannot happen for a connected component, kept total anyway).
-fn gauss(mut m: Vec<Vec<f64>>) -> Vec<f64> {
-    let k = m.len();
-    for col in 0..k {
-        let pivot = (col..k)
-            .max_by(|&x, &y| m[x][col].abs().total_cmp(&m[y][col].abs()))
-            .unwrap_or(col);
-        m.swap(col, pivot);
-        let p = m[col][col];
-        if p.abs() < 1e-12 {
-            continue;
-        }
-        let pivot_row = m[col].clone();
-        for (row, r) in m.iter_mut().enumerate() {
-            let f = r[col] / p;
-            if row != col && f != 0.0 {
-                for (x, &y) in r.iter_mut().zip(&pivot_row).skip(col) {
-                    *x -= f * y;
-                }
-            }
-        }
-    }
-    (0..k)
-        .map(|i| {
-            if m[i][i].abs() < 1e-12 {
-                0.0
-            } else {
-                m[i][k] / m[i][i]
-            }
-        })
-        .collect()
 }
 
 /// Moves the zero: onto `reference` when one was asked for, else onto the known camera whose
