@@ -54,7 +54,7 @@ PY
 
 echo "| watch | rate (fps) | results/s | p50 ms | p99 ms | max ms | lost | estimates | ms per estimate | watch CPU (of one core) | load test |"
 echo "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"
-for round in 1 2; do
+for _ in 1 2; do
   run off --clock-watch-window 0
   # shellcheck disable=SC2086
   run on $ON_ARGS

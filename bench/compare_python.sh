@@ -52,8 +52,9 @@ for W in "${WIDTHS[@]}"; do
         --width "$W" --fourier 32 --camera-dim 32
     fi
   fi
+  ident=(); [ "$IDENTITIES" = 1 ] && ident=(--identities)
   RUST=$(RUST_LOG=warn ./target/release/pipeline --model "$MODEL" --data "$DATA" \
-    --threads "$THREADS" --workers "$WORKERS" $([ "$IDENTITIES" = 1 ] && echo --identities) \
+    --threads "$THREADS" --workers "$WORKERS" "${ident[@]}" \
     --repeat "$REPEAT" --json)
   PY=$("$VENV/bin/python" bench/python_reference.py --model "$MODEL" --data "$DATA" \
     --threads "$PY_THREADS" --repeat "$REPEAT")

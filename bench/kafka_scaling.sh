@@ -36,7 +36,8 @@ source bench/kafka_common.sh
 peak_kib() { awk '/VmHWM/ {print $2}' "/proc/$1/status" 2>/dev/null || echo 0; }
 
 run() { # run REPLICAS RATE
-  local n=$1 rate=$2 name="kafka-${n}r-$2"
+  local n=$1 rate=$2
+  local name="kafka-${n}r-$2"
   local bport; bport=$(free_port)
   local broker=127.0.0.1:$bport
   "$TANSU" broker --listener-url "tcp://$broker" --advertised-listener-url "tcp://$broker" \
@@ -69,7 +70,8 @@ run() { # run REPLICAS RATE
   "$LOADTEST_BIN" --transport kafka --kafka-brokers "$broker" --kafka-format "$FORMAT" \
     --recording "$OUT/rec.jsonl" --scene-names "$NAMES" --rate "$rate" --duration "$DURATION" --loop \
     --window 4 --drain-timeout 15s --json >"$OUT/$name.json" 2>"$OUT/$name.err" || true
-  local rss="broker $(( $(peak_kib "$bpid") / 1024 )) MB / $(cpu_s "$bpid") s"
+  local rss
+  rss="broker $(( $(peak_kib "$bpid") / 1024 )) MB / $(cpu_s "$bpid") s"
   for i in "${!rpids[@]}"; do rss+=", r$((i + 1)) $(( $(peak_kib "${rpids[$i]}") / 1024 )) MB / $(cpu_s "${rpids[$i]}") s"; done
   stop_all
   python3 - "$OUT/$name.json" "$n" "$rss" <<'PY'

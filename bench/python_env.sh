@@ -1,3 +1,4 @@
+# shellcheck shell=bash
 # Sourced by the bench scripts: the ONNX Runtime library (scripts/setup.sh) and a virtual
 # environment with numpy, scipy and onnxruntime==1.31.1 from PyPI in .cache/bench-venv ($VENV).
 bash scripts/setup.sh

@@ -4,7 +4,7 @@
 # server per run (peak RSS sampled by the load tester). Bounded: every run has --duration.
 # Usage: bash bench/service_throughput.sh     Env: OUT (/var/tmp/cv-svc), PORT (18391)
 set -u
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/.." || exit 1
 export ORT_DYLIB_PATH=$PWD/.cache/onnxruntime/libonnxruntime.so.1.31.1
 OUT=${OUT:-/var/tmp/cv-svc}; mkdir -p $OUT; PORT=${PORT:-18391}; TARGET=http://127.0.0.1:$PORT
 B=target/release/crossview; L=target/release/crossview-loadtest

@@ -5,7 +5,7 @@
 # so the spread between runs of the same setting shows the noise). Bounded: --duration.
 # Usage: bash bench/tracking_latency.sh     Env: OUT (/var/tmp/cv-track), PORT (18392), DURATION (20s)
 set -u
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/.." || exit 1
 export ORT_DYLIB_PATH=$PWD/.cache/onnxruntime/libonnxruntime.so.1.31.1
 OUT=${OUT:-/var/tmp/cv-track}; mkdir -p $OUT; PORT=${PORT:-18392}; TARGET=http://127.0.0.1:$PORT
 DURATION=${DURATION:-20s}

@@ -1,3 +1,4 @@
+# shellcheck shell=bash
 # Shared by the load benchmarks of one 7-camera scene (record_overhead.sh, clock_watch_cost.sh),
 # sourced after they set CROSSVIEW_BIN, LOADTEST_BIN, OUT, PORT, TARGET, MODEL, TRANSPORT,
 # RATE and DURATION: the WILDTRACK-shaped recording, and one load run against a fresh server.
