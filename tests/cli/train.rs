@@ -47,6 +47,20 @@ pub(crate) fn recording(cameras: usize, frames: usize, ids: bool) -> Recording {
     }
 }
 
+/// A one-epoch run of a tiny encoder (for tests of what the trainer reads and writes).
+const TINY: &[&str] = &[
+    "--epochs",
+    "1",
+    "--width",
+    "16",
+    "--fourier-features",
+    "8",
+    "--camera-dim",
+    "8",
+    "--self-train-epochs",
+    "0",
+];
+
 /// Runs `crossview train --quiet ARGS --data DATA --out OUT` and returns what it printed.
 pub(crate) fn train(data: &Path, out: &Path, args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_crossview"))
@@ -201,25 +215,7 @@ fn box_filter_is_recorded_and_an_empty_result_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("train.jsonl");
     write_recording(&data, &recording(2, 24, false)).unwrap();
-    let train = |extra: &[&str], out: &std::path::Path| {
-        Command::new(env!("CARGO_BIN_EXE_crossview"))
-            .args(["train", "--quiet", "--epochs", "1", "--width", "16"])
-            .args([
-                "--fourier-features",
-                "8",
-                "--camera-dim",
-                "8",
-                "--self-train-epochs",
-                "0",
-            ])
-            .args(extra)
-            .arg("--data")
-            .arg(&data)
-            .arg("--out")
-            .arg(out)
-            .output()
-            .unwrap()
-    };
+    let train = |extra: &[&str], out: &Path| train(&data, out, &[TINY, extra].concat());
     // Boxes are 40-43 px of a 100 px image: 0.3 keeps them all and is stored in the model.
     let out = dir.path().join("kept.onnx");
     let st = train(
@@ -252,20 +248,7 @@ fn a_faster_recording_trains_on_every_nth_frame_and_records_its_rate() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("train.jsonl");
     write_recording(&data, &recording(2, 60, false)).unwrap();
-    let small = [
-        "--epochs",
-        "1",
-        "--width",
-        "16",
-        "--fourier-features",
-        "8",
-        "--camera-dim",
-        "8",
-        "--self-train-epochs",
-        "0",
-        "--population",
-        "1",
-    ];
+    let small = [TINY, &["--population", "1"]].concat();
     // 10 frames per second: one frame in 5, 12 of 60 (too few to hold any out: a warning).
     let out = dir.path().join("m.onnx");
     let st = train_ok(&data, &out, &[&small[..], &["--fps", "10"]].concat());
