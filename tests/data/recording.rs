@@ -628,6 +628,48 @@ fn a_torn_last_line_is_dropped_and_counted() {
     assert_eq!(reader.stats().torn_lines, 1);
 }
 
+/// A server whose `--auto-align` changed a camera's clock offset starts a new file with it:
+/// each file's batches are grouped by its own header's offsets, so the files read together
+/// group them as the server did.
+#[test]
+fn files_whose_offsets_differ_are_grouped_each_by_its_own_header() {
+    let dir = tempfile::tempdir().unwrap();
+    let line = |cam: &str, frame: u64, x: f32| {
+        format!(
+            r#"{{"camera": "{cam}", "frame_id": {frame}, "detections": [{{"bbox": [{x}, 10, {}, 80]}}]}}"#,
+            x + 20.0
+        )
+    };
+    // Camera b runs 3 frames late: in sync in the first file, declared +3 in the second.
+    let late = HEADER.replace(
+        r#"{"name": "b", "width": 1920, "height": 1080}"#,
+        r#"{"name": "b", "width": 1920, "height": 1080, "offset": 3}"#,
+    );
+    assert_ne!(late, HEADER);
+    let one = format!("{HEADER}\n{}\n{}\n", line("a", 0, 1.0), line("b", 0, 2.0));
+    let two = format!("{late}\n{}\n{}\n", line("a", 5, 3.0), line("b", 8, 4.0));
+    std::fs::write(dir.path().join("0001.jsonl"), one).unwrap();
+    std::fs::write(dir.path().join("0002.jsonl"), two).unwrap();
+    let rec = read_recording(dir.path()).unwrap();
+    assert_eq!(rec.frame_ids(), vec![0, 5]);
+    let x = |f: usize, c: usize| rec.frames[f].views[c].as_ref().unwrap()[0].bbox[0];
+    assert_eq!((x(0, 0), x(0, 1)), (1.0, 2.0));
+    assert_eq!(
+        (x(1, 0), x(1, 1)),
+        (3.0, 4.0),
+        "b's batch 8 belongs to frame 5"
+    );
+    // Written back, the recording reads the same (one header, one set of offsets).
+    let out = dir.path().join("merged.out");
+    write_recording(&out, &rec).unwrap();
+    assert_eq!(read_recording(&out).unwrap().frames, rec.frames);
+    // Other cameras (here: another image size) are still another scene.
+    let other = HEADER.replace("1080", "1081");
+    std::fs::write(dir.path().join("0003.jsonl"), format!("{other}\n")).unwrap();
+    let err = read_recording(dir.path()).unwrap_err().to_string();
+    assert!(err.contains("same scene"), "{err}");
+}
+
 #[test]
 fn a_directory_or_several_files_read_as_one_recording() {
     let dir = tempfile::tempdir().unwrap();

@@ -13,6 +13,7 @@ use crossview_api::pb;
 use crossview_core::{Batch, SceneSpec};
 use crossview_data::sim::{SimConfig, Simulator};
 use crossview_eval::compute_metrics;
+use crossview_serve::RecordConfig;
 use crossview_serve::ServeConfig;
 use crossview_serve::config::ClockWatchConfig;
 use crossview_serve::config::SceneDecl;
@@ -49,6 +50,8 @@ type Sent = HashMap<(usize, u64), Vec<Option<u64>>>;
 /// What one run pushed and received.
 struct Run {
     sent: Sent,
+    /// Per camera and frame id, the boxes the client sent.
+    boxes: HashMap<(usize, u64), Vec<[f32; 4]>>,
     results: Vec<pb::FrameResult>,
     /// Batches refused (late or duplicate ones while `--auto-align` moves a camera).
     refused: usize,
@@ -80,6 +83,7 @@ async fn run_until(
     let url = server.url("/v1/scenes/demo/batches");
     let mut rng = rand::rngs::StdRng::seed_from_u64(5);
     let mut sent = Sent::new();
+    let mut boxes = HashMap::new();
     let mut refused = 0;
     let mut changed_at = None;
     let mut end = frames.end;
@@ -105,6 +109,7 @@ async fn run_until(
             let mut dets = frame.views[c].clone().unwrap_or_default();
             let frame_id = frame.frame_id + if c == LAGGING { lag(frame.frame_id) } else { 0 };
             sent.insert((c, frame_id), dets.iter().map(|d| d.id).collect());
+            boxes.insert((c, frame_id), dets.iter().map(|d| d.bbox).collect());
             dets.iter_mut().for_each(|d| d.id = None);
             let batch = Batch {
                 camera: names[c].clone(),
@@ -136,6 +141,7 @@ async fn run_until(
     }
     Run {
         sent,
+        boxes,
         results: got,
         refused,
         changed_at,
@@ -301,9 +307,11 @@ async fn the_live_estimate_follows_a_drifting_camera() {
 /// score like those of a declared offset.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn auto_align_corrects_a_late_camera_once() {
+    let record = tempfile::tempdir().unwrap();
     let server = start_with(demo_model(), |c| {
         configure(c, None);
         c.limits.clock_watch.auto_align = true;
+        c.record = Some(RecordConfig::new(record.path()));
     })
     .await;
     // Streams until 200 frames after the change (at most 10,000 frames).
@@ -332,6 +340,7 @@ async fn auto_align_corrects_a_late_camera_once() {
         1.0
     );
     server.shutdown().await.unwrap();
+    recording_groups_as_served(record.path(), &stream.boxes, changed);
     // The same frames in sync.
     let server = start_with(demo_model(), |c| configure(c, None)).await;
     let end = tail.last().map_or(0, |r| r.frame_id + 1);
@@ -353,4 +362,49 @@ async fn auto_align_corrects_a_late_camera_once() {
         100.0 * sync_acc.1
     );
     assert!((aligned.0 - sync_acc.0).abs() <= 0.01, "within 1 point");
+}
+
+/// The recording of an auto-aligned stream reads back grouped as the server grouped it: a new
+/// file began with camera `LAGGING`'s new offset, so its batch `k + LAG` is in frame `k` once
+/// the change is well past (before it, `k`), and every other camera's batch `k` in frame `k`.
+fn recording_groups_as_served(
+    dir: &std::path::Path,
+    boxes: &HashMap<(usize, u64), Vec<[f32; 4]>>,
+    changed: u64,
+) {
+    let files = crossview_data::recording_files(&[dir.join("demo")]).unwrap();
+    assert!(files.len() >= 2, "a new file at the change: {files:?}");
+    let last = crossview_data::RecordingReader::open(files.last().unwrap()).unwrap();
+    assert_eq!(last.scene().cameras[LAGGING].offset, LAG as i64);
+    let rec = crossview_data::read_recording(dir.join("demo")).unwrap();
+    let (mut before, mut after) = (0, 0);
+    for f in &rec.frames {
+        for (c, view) in f.views.iter().enumerate() {
+            let Some(view) = view else { continue };
+            let got: Vec<[f32; 4]> = view.iter().map(|d| d.bbox).collect();
+            let sent_at = |o: u64| boxes.get(&(c, f.frame_id + o));
+            let lag = if c != LAGGING {
+                0
+            } else if f.frame_id + 25 < changed {
+                before += 1;
+                0
+            } else if f.frame_id >= changed + LAG {
+                after += 1;
+                LAG
+            } else {
+                // Around the change: either grouping, as the server applied it then.
+                assert!(
+                    [0, LAG].iter().any(|&o| sent_at(o) == Some(&got)),
+                    "frame {}",
+                    f.frame_id
+                );
+                continue;
+            };
+            assert_eq!(sent_at(lag), Some(&got), "camera {c}, frame {}", f.frame_id);
+        }
+    }
+    assert!(
+        before > 0 && after > 100,
+        "{before} before, {after} after the change"
+    );
 }

@@ -28,6 +28,14 @@ impl FrameAssembler {
         }
     }
 
+    /// Groups the batches inserted from now on by `scene`'s clock offsets (the same cameras,
+    /// in the same order).
+    pub(super) fn use_offsets(&mut self, scene: &SceneSpec) {
+        for (c, s) in self.cameras.iter_mut().zip(&scene.cameras) {
+            c.offset = s.offset;
+        }
+    }
+
     /// Stores camera `cam`'s detections of its frame id `frame_id`.
     pub(super) fn insert(
         &mut self,

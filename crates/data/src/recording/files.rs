@@ -65,8 +65,9 @@ pub fn recording_files(paths: &[impl AsRef<Path>]) -> Result<Vec<PathBuf>> {
 }
 
 /// Reads the recording files and directories `paths` (see [`recording_files`] and the module
-/// docs) as one recording: all must declare the same scene; torn last lines are dropped and
-/// counted in [`ReadStats::torn_lines`]. `strict` as in [`read_recording_with`].
+/// docs) as one recording: all must declare the same scene (each file's batches grouped by its
+/// own header's clock offsets); torn last lines are dropped and counted in
+/// [`ReadStats::torn_lines`]. `strict` as in [`read_recording_with`].
 pub fn read_recordings(paths: &[impl AsRef<Path>], strict: bool) -> Result<(Recording, ReadStats)> {
     let files = recording_files(paths)?;
     let several = files.len() > 1 || paths.iter().any(|p| p.as_ref().is_dir());
@@ -103,7 +104,7 @@ pub fn read_recordings(paths: &[impl AsRef<Path>], strict: bool) -> Result<(Reco
         }
         match &first {
             None => first = Some((reader.scene().clone(), name.clone())),
-            Some((scene, first_name)) if scene != reader.scene() => {
+            Some((scene, first_name)) if !same_cameras(scene, reader.scene()) => {
                 return Err(Error::Format {
                     source_name: name,
                     line: 1,
@@ -121,6 +122,9 @@ pub fn read_recordings(paths: &[impl AsRef<Path>], strict: bool) -> Result<(Reco
         reader.appearance = appearance;
         let scene = reader.scene().clone();
         let assembler = assembler.get_or_insert_with(|| FrameAssembler::new(&scene));
+        // Each file's batches by its own header's clock offsets (a server whose
+        // `--auto-align` changed one started a new file with the new offsets).
+        assembler.use_offsets(&scene);
         while let Some(batch) = reader.next() {
             let batch = batch?;
             let cam = scene.camera_index(&batch.camera)?;
@@ -182,4 +186,14 @@ pub fn read_recordings(paths: &[impl AsRef<Path>], strict: bool) -> Result<(Reco
         },
         stats,
     ))
+}
+
+/// The same scene up to the cameras' clock offsets: name, camera names and image sizes.
+fn same_cameras(a: &SceneSpec, b: &SceneSpec) -> bool {
+    a.name == b.name
+        && a.cameras.len() == b.cameras.len()
+        && a.cameras
+            .iter()
+            .zip(&b.cameras)
+            .all(|(x, y)| (&x.name, x.width, x.height) == (&y.name, y.width, y.height))
 }

@@ -21,7 +21,9 @@
 //! directories — a directory stands for every `*.jsonl` file below it, recursively (symbolic
 //! links to directories are not followed), in path order (the server's file names sort by
 //! start time) — and reads them, in the order given, as one recording. Every file starts with
-//! its own scene header and all must declare the same scene; a frame may be spread over several
+//! its own scene header and all must declare the same scene (the same cameras; their clock
+//! offsets may differ, and each file's batches are grouped by its own header's, as a server
+//! whose `--auto-align` changed an offset wrote them); a frame may be spread over several
 //! files (a rotation between its cameras' batches), but a camera twice for one frame, in one
 //! file or two, is still a duplicate. The **last line of each file**, when it has no newline at
 //! its end and is not complete JSON (a crash cut it short while it was written), is **torn**:

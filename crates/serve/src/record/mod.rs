@@ -25,6 +25,11 @@
 //! `crossview_record_dropped_total{reason="write_error"}`); the file is cut back to its last
 //! complete write and the next batch starts a new file. It never stops the server.
 //!
+//! **Clock offsets.** A file's header carries each camera's clock offset as the server applied
+//! it to the file's batches. When `--auto-align` changes a camera's offset, the scene's file is
+//! closed and the next one starts with the new offsets, so every file reads back (and several
+//! files together, each by its own header) grouped as the server grouped them.
+//!
 //! **Crash safety.** A line is only ever written after the lines before it, so after a crash
 //! (SIGKILL, power loss) only the *last* line of a file can be incomplete. At start-up the
 //! recorder repairs every recording file under `DIR`: a tail after the last newline is cut
@@ -106,6 +111,9 @@ impl RecordConfig {
 enum Msg {
     Batch {
         scene: usize,
+        /// The camera's index in the scene, and the clock offset its batch was grouped by.
+        camera_index: usize,
+        offset: i64,
         camera: String,
         frame_id: u64,
         detections: Vec<Detection>,
@@ -206,10 +214,18 @@ fn batch_cost(camera: &str, detections: &[Detection]) -> usize {
 }
 
 impl SceneRecorder {
-    /// Queues one accepted batch for the writer; never blocks. Call it where the batch is
-    /// accepted, under the scene's intake lock, so batches are written in acceptance order.
-    /// A batch the queue has no room for is counted as dropped.
-    pub(crate) fn record(&self, camera: &str, frame_id: u64, detections: Vec<Detection>) {
+    /// Queues one accepted batch of camera number `camera_index`, grouped by clock offset
+    /// `offset`, for the writer; never blocks. Call it where the batch is accepted, under the
+    /// scene's intake lock, so batches are written in acceptance order. A batch the queue has
+    /// no room for is counted as dropped.
+    pub(crate) fn record(
+        &self,
+        camera: &str,
+        camera_index: usize,
+        offset: i64,
+        frame_id: u64,
+        detections: Vec<Detection>,
+    ) {
         let r = &*self.recorder;
         let name = &r.names[self.scene];
         let cost = batch_cost(camera, &detections);
@@ -225,6 +241,8 @@ impl SceneRecorder {
         }
         let msg = Msg::Batch {
             scene: self.scene,
+            camera_index,
+            offset,
             camera: camera.to_string(),
             frame_id,
             detections,

@@ -57,6 +57,8 @@ struct OpenFile {
 struct SceneState {
     name: String,
     dir: PathBuf,
+    /// The scene as the current file's header declares it (clock offsets as applied).
+    spec: SceneSpec,
     header: Vec<u8>,
     open: Option<OpenFile>,
     last_error_log: Option<Instant>,
@@ -74,6 +76,14 @@ pub(super) struct Writer {
     line: Vec<u8>,
     /// When the books were last checked against the disk ([`Writer::reconcile`]).
     last_reconcile: Instant,
+}
+
+/// A recording's first line for `spec`, newline included.
+fn header_line(spec: &SceneSpec) -> Result<Vec<u8>> {
+    let mut header = serde_json::to_vec(&HeaderLine { scene: spec })
+        .map_err(|e| Error::internal_from("cannot serialize the scene header", e))?;
+    header.push(b'\n');
+    Ok(header)
 }
 
 /// The sequence number of a recording file name `<seq>-<...>.jsonl`.
@@ -143,13 +153,11 @@ impl Writer {
             }
             let sdir = dir.join(&spec.name);
             std::fs::create_dir_all(&sdir).map_err(|e| io_err(&sdir, e))?;
-            let mut header = serde_json::to_vec(&HeaderLine { scene: spec })
-                .map_err(|e| Error::internal_from("cannot serialize the scene header", e))?;
-            header.push(b'\n');
             states.push(SceneState {
                 name: spec.name.clone(),
                 dir: sdir,
-                header,
+                spec: spec.clone(),
+                header: header_line(spec)?,
                 open: None,
                 last_error_log: None,
             });
@@ -224,11 +232,14 @@ impl Writer {
             match msg {
                 Msg::Batch {
                     scene,
+                    camera_index,
+                    offset,
                     camera,
                     frame_id,
                     detections,
                     cost,
                 } => {
+                    self.follow_offset(scene, camera_index, offset);
                     self.write(scene, &camera, frame_id, &detections);
                     queued.fetch_sub(cost, Ordering::AcqRel);
                 }
@@ -239,6 +250,26 @@ impl Writer {
             self.close_file(s);
         }
         tracing::info!(dir = %self.config.dir.display(), "recording flushed");
+    }
+
+    /// Starts a new file for scene `s` when camera `cam`'s batch was grouped by another clock
+    /// offset than the current file's header declares (`--auto-align` changed it).
+    fn follow_offset(&mut self, s: usize, cam: usize, offset: i64) {
+        let st = &mut self.scenes[s];
+        let Some(c) = st.spec.cameras.get_mut(cam) else {
+            return;
+        };
+        if c.offset == offset {
+            return;
+        }
+        tracing::info!(scene = %st.name, camera = %c.name, from = c.offset, to = offset,
+            "recording: a camera's clock offset changed; starting a new file");
+        c.offset = offset;
+        match header_line(&st.spec) {
+            Ok(h) => st.header = h,
+            Err(e) => tracing::error!(error = %e, "cannot serialize the scene header"),
+        }
+        self.close_file(s);
     }
 
     /// Writes one batch line of scene `s` (rotating and making room first).

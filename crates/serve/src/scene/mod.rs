@@ -276,7 +276,8 @@ impl Scene {
         let recorded = self.recorder.as_ref().map(|_| detections.clone());
         let mut intake = lock(&self.intake);
         // The frame the batch belongs to: its id less the camera's clock offset.
-        let frame = self.frame_of(cam, frame_id)?;
+        let offset = self.offsets[cam].load(Ordering::Acquire);
+        let frame = self.frame_of(cam, frame_id, offset)?;
         // Shed before accepting anything. One batch can release several frames at once, so the
         // queue may overshoot the capacity by at most `max_pending_frames`: still bounded.
         self.admit(1)?;
@@ -308,7 +309,7 @@ impl Scene {
         self.metrics.batch(self.name());
         // Accepted: recorded exactly once, under the lock, so in acceptance order (never blocks).
         if let (Some(r), Some(dets)) = (&self.recorder, recorded) {
-            r.record(camera, frame_id, dets);
+            r.record(camera, cam, offset, frame_id, dets);
         }
         self.enqueue(&mut intake, emitted);
         drop(intake);
@@ -326,10 +327,10 @@ impl Scene {
         cameras
     }
 
-    /// The frame camera `cam`'s batch `frame_id` belongs to: `frame_id` less the camera's
-    /// clock offset (its `@±N` in the scene declaration, or what `--auto-align` set).
-    fn frame_of(&self, cam: usize, frame_id: u64) -> Result<u64> {
-        let offset = self.offsets[cam].load(Ordering::Acquire);
+    /// The frame camera `cam`'s batch `frame_id` belongs to: `frame_id` less `offset`, the
+    /// camera's clock offset as read for this batch (its `@±N` in the scene declaration, or
+    /// what `--auto-align` set; the recorder is told the same value).
+    fn frame_of(&self, cam: usize, frame_id: u64, offset: i64) -> Result<u64> {
         crossview_core::types::frame_less_offset(frame_id, offset).ok_or_else(|| {
             Error::invalid(
                 "frame_id",
