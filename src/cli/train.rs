@@ -134,7 +134,7 @@ pub struct TrainArgs {
     pub static_offset: usize,
     /// [ours] Frames per second of the training recording. The method's negatives lie 5–19
     /// frames from their anchor at 2 frames per second (WILDTRACK's rate): a faster
-    /// recording trains on every round(fps / 2)-th frame so that they stay seconds apart
+    /// recording trains on one frame in round(fps / 2) so that they stay seconds apart
     /// (the simulator writes 10 by default).
     #[arg(long, default_value_t = crossview_train::data::REFERENCE_FPS, env = "CROSSVIEW_TRAIN_FPS")]
     pub fps: f64,
