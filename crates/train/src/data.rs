@@ -107,10 +107,9 @@ impl TrainingSet {
         self.images.iter().flatten().map(|i| i.boxes.len()).sum()
     }
 
-    /// Keeps every `step`-th frame (positions 0, `step`, 2·`step`, …): the training sequence
-    /// of a recording faster than [`REFERENCE_FPS`] (see [`frame_step`]). `step` 0 or 1
-    /// keeps everything.
-    pub fn keep_every(&mut self, step: usize) {
+    /// Keeps every `step`-th frame (positions 0, `step`, 2·`step`, …); `step` 0 or 1 keeps
+    /// everything.
+    fn keep_every(&mut self, step: usize) {
         if step <= 1 {
             return;
         }
@@ -120,9 +119,7 @@ impl TrainingSet {
             .step_by(step)
             .collect();
     }
-}
 
-impl TrainingSet {
     /// Brings the set from a recording of `fps` frames per second to about
     /// [`REFERENCE_FPS`] (one frame in [`frame_step`]`(fps)`) and returns the step. Fewer than
     /// `min_frames` frames left, or an `fps` that is no frame rate, is an error that says so.

@@ -44,8 +44,9 @@ pub struct RunOptions {
     pub config: TrainConfig,
     /// The training-box cleaning.
     pub filter: BoxFilter,
-    /// **[ours]** Frames per second of the training recording: a faster one trains on every
-    /// [`frame_step`]-th frame, so negatives stay seconds away ([`REFERENCE_FPS`]).
+    /// **[ours]** Frames per second of the training recording: a faster one trains on one
+    /// frame in [`frame_step`], so negatives stay seconds away
+    /// ([`REFERENCE_FPS`](crate::data::REFERENCE_FPS)).
     pub fps: f64,
     /// Share of the last frames held out for the label-free score (0 = none).
     pub holdout: f64,

@@ -111,10 +111,10 @@ impl RecordConfig {
 enum Msg {
     Batch {
         scene: usize,
-        /// The camera's index in the scene, and the clock offset its batch was grouped by.
+        /// The camera's index in the scene (its name is in the writer's scene), and the clock
+        /// offset its batch was grouped by.
         camera_index: usize,
         offset: i64,
-        camera: String,
         frame_id: u64,
         detections: Vec<Detection>,
         cost: usize,
@@ -205,12 +205,12 @@ impl Recorder {
 use crate::locks::lock;
 
 /// Memory a queued batch holds (an estimate, for the queue bound).
-fn batch_cost(camera: &str, detections: &[Detection]) -> usize {
+fn batch_cost(detections: &[Detection]) -> usize {
     let vectors: usize = detections
         .iter()
         .map(|d| d.appearance.as_ref().map_or(0, |a| a.len() * 4))
         .sum();
-    128 + camera.len() + std::mem::size_of_val(detections) + vectors
+    128 + std::mem::size_of_val(detections) + vectors
 }
 
 impl SceneRecorder {
@@ -220,7 +220,6 @@ impl SceneRecorder {
     /// no room for is counted as dropped.
     pub(crate) fn record(
         &self,
-        camera: &str,
         camera_index: usize,
         offset: i64,
         frame_id: u64,
@@ -228,7 +227,7 @@ impl SceneRecorder {
     ) {
         let r = &*self.recorder;
         let name = &r.names[self.scene];
-        let cost = batch_cost(camera, &detections);
+        let cost = batch_cost(&detections);
         let reserved = r
             .queued
             .fetch_update(Ordering::AcqRel, Ordering::Acquire, |q| {
@@ -243,7 +242,6 @@ impl SceneRecorder {
             scene: self.scene,
             camera_index,
             offset,
-            camera: camera.to_string(),
             frame_id,
             detections,
             cost,

@@ -234,13 +234,12 @@ impl Writer {
                     scene,
                     camera_index,
                     offset,
-                    camera,
                     frame_id,
                     detections,
                     cost,
                 } => {
                     self.follow_offset(scene, camera_index, offset);
-                    self.write(scene, &camera, frame_id, &detections);
+                    self.write(scene, camera_index, frame_id, &detections);
                     queued.fetch_sub(cost, Ordering::AcqRel);
                 }
                 Msg::Stop => break,
@@ -272,17 +271,25 @@ impl Writer {
         self.close_file(s);
     }
 
-    /// Writes one batch line of scene `s` (rotating and making room first).
-    fn write(&mut self, s: usize, camera: &str, frame_id: u64, detections: &[Detection]) {
+    /// Writes one batch line of scene `s`'s camera number `cam` (rotating and making room
+    /// first).
+    fn write(&mut self, s: usize, cam: usize, frame_id: u64, detections: &[Detection]) {
         self.line.clear();
-        let batch = BatchLine {
-            camera,
-            frame_id,
-            detections,
+        let written = match self.scenes[s].spec.cameras.get(cam) {
+            Some(c) => {
+                let batch = BatchLine {
+                    camera: &c.name,
+                    frame_id,
+                    detections,
+                };
+                serde_json::to_writer(&mut self.line, &batch).map_err(std::io::Error::other)
+            }
+            // Cannot happen: the scene resolved the index from this same camera list.
+            None => Err(std::io::Error::other(format!("no camera number {cam}"))),
         };
-        if let Err(e) = serde_json::to_writer(&mut self.line, &batch) {
+        if let Err(e) = written {
             // Cannot happen for validated batches (finite numbers); counted all the same.
-            self.failed(s, &std::io::Error::other(e), 1);
+            self.failed(s, &e, 1);
             return;
         }
         self.line.push(b'\n');

@@ -309,7 +309,7 @@ impl Scene {
         self.metrics.batch(self.name());
         // Accepted: recorded exactly once, under the lock, so in acceptance order (never blocks).
         if let (Some(r), Some(dets)) = (&self.recorder, recorded) {
-            r.record(camera, cam, offset, frame_id, dets);
+            r.record(cam, offset, frame_id, dets);
         }
         self.enqueue(&mut intake, emitted);
         drop(intake);
