@@ -82,6 +82,12 @@ pub enum Command {
 pub fn run() -> anyhow::Result<()> {
     let cli = Cli::parse();
     init_logging(cli.log_format);
+    if !matches!(
+        cli.command,
+        Command::Serve(_) | Command::Demo(_) | Command::Train(_)
+    ) {
+        end_quietly_when_the_reader_leaves();
+    }
     match cli.command {
         Command::Serve(args) => serve::run(args),
         Command::Import(args) => import::run(args),
@@ -97,5 +103,20 @@ pub fn run() -> anyhow::Result<()> {
             println!("{}", crossview_serve::openapi_json());
             Ok(())
         }
+    }
+}
+
+/// A command whose output is piped into a reader that stops early (`crossview eval … | head`)
+/// ends the way Unix tools do, at once and silently, instead of panicking on the failed
+/// write: Rust ignores SIGPIPE, so every print would fail with "Broken pipe". Not for the
+/// long-running commands (a server's clients leaving is an error they handle).
+fn end_quietly_when_the_reader_leaves() {
+    #[cfg(unix)]
+    // SAFETY: restores the default disposition of one signal; no handler is installed and
+    // no other thread depends on SIGPIPE being ignored (the commands that get here use no
+    // sockets).
+    #[allow(unsafe_code)]
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
 }

@@ -2,6 +2,7 @@
 //! eval, model, serve, train, the offline worker pool, and the end-to-end check that what a
 //! client of the server receives scores like `crossview eval`.
 
+mod closed_pipe;
 mod demo;
 mod eval;
 mod fail_closed;
