@@ -7,7 +7,8 @@
 //! --seed 11 --clean` (7 cameras × ~35 boxes), first 40 frames, cycled; a random encoder
 //! (`crossview model init --width 64 --fourier 32 --camera-dim 32 --seed 3`, the demo
 //! model's architecture and the issue's ≈ 11 MFLOP per frame) at widths 64 and 768, and
-//! ensembles of 2 and 4 such width-64 encoders (`crossview train --ensemble`, width 128 / 256).
+//! ensembles of 2, 4 and 6 such width-64 encoders (`crossview train --ensemble`, width 128 /
+//! 256 / 384; 6 is the trainer's default).
 use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
@@ -44,6 +45,7 @@ fn bench_frame(c: &mut Criterion) {
         ("w768", 768, 1),
         ("w64x2", 64, 2),
         ("w64x4", 64, 4),
+        ("w64x6", 64, 6),
     ] {
         let config = EncoderConfig {
             width,

@@ -9,7 +9,7 @@ use anyhow::Context;
 use clap::{Args, ValueEnum};
 
 use crossview_train::clean::BoxFilter;
-use crossview_train::population::PopulationOptions;
+use crossview_train::population::{DEFAULT_ENSEMBLE, DEFAULT_MEMBERS, PopulationOptions};
 use crossview_train::pseudo::PseudoOptions;
 use crossview_train::run::{RunOptions, run as run_training};
 use crossview_train::trainer::{CheckpointOptions, LrSchedule, Select, TrainConfig};
@@ -185,7 +185,7 @@ pub struct TrainArgs {
     pub threads: Option<usize>,
     /// [ours] Train this many members (the run's seed and seeds derived from it) side by
     /// side, one per thread, rank them by the label-free key and export the best
-    /// `--ensemble` of them together. Default: one member per core and at least 4 when frames
+    /// `--ensemble` of them together. Default: one member per core and at least 6 when frames
     /// are held out (`--holdout`) or `--val` is given, else 1. 1 = a single run.
     #[arg(long, value_parser = clap::value_parser!(u16).range(1..=64))]
     pub population: Option<u16>,
@@ -196,8 +196,9 @@ pub struct TrainArgs {
     pub halve_at: Fractions,
     /// [ours] Export the best this many finalists of the population (by the label-free key)
     /// together as one encoder: the embedding is theirs concatenated, so distances are the
-    /// RMS of theirs. 1 = the winner alone; more than the finalists = all of them.
-    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u16).range(1..=16))]
+    /// RMS of theirs. 1 = the winner alone (a sixth of the default encoder's width); more than the
+    /// finalists = all of them.
+    #[arg(long, default_value_t = DEFAULT_ENSEMBLE as u16, value_parser = clap::value_parser!(u16).range(1..=16))]
     pub ensemble: u16,
     /// [ours] Also write every finalist of the population as its own model file in this
     /// directory (`member-<i>.onnx`).
@@ -345,7 +346,7 @@ fn population_options(args: &TrainArgs) -> PopulationOptions {
     let rankable = args.holdout > 0.0 || args.val.is_some();
     let size = match args.population {
         Some(k) => usize::from(k),
-        None if rankable => threads.max(4),
+        None if rankable => threads.max(DEFAULT_MEMBERS),
         None => 1,
     };
     if size <= 1 {

@@ -5,6 +5,8 @@
 //! and the streamed track ids scored as `crossview eval --tracking` scores its own (issue #15:
 //! multi-camera IDF1 ≥ 85 on these frames).
 //! Skipped, with a note, when the WILDTRACK data is not beside the repository.
+//! `CROSSVIEW_SERVED_MODEL=path/to/model.onnx` runs the same check with another model file (the
+//! equalities are checked, the bars are `models/wildtrack.onnx`'s; the scores are printed).
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -31,7 +33,10 @@ async fn served_identities_score_like_eval_on_wildtrack_validation() {
     let Some(dir) = crossview_testing::wildtrack_dir() else {
         return;
     };
-    let model = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/wildtrack.onnx");
+    let other = std::env::var_os("CROSSVIEW_SERVED_MODEL").map(PathBuf::from);
+    let committed = other.is_none();
+    let model = other
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/wildtrack.onnx"));
     let (lo, hi) = part_bounds(Part::Val);
     let rec = import_ground_truth(&dir.join("annotations_positions"), Some(lo), Some(hi))
         .unwrap()
@@ -143,8 +148,17 @@ async fn served_identities_score_like_eval_on_wildtrack_validation() {
     };
     assert_eq!(counts(&got), counts(&expected));
     assert_eq!((got.acc, got.ipaa_100), (expected.acc, expected.ipaa_100));
+    eprintln!(
+        "served identities of {}: ACC {:.2} IPAA-100 {:.2}",
+        model.display(),
+        100.0 * got.acc,
+        100.0 * got.ipaa_100
+    );
     // The identities beat the bar of the identity issue on these frames.
-    assert!(got.acc >= 0.95 && got.ipaa_100 >= 0.70, "{got:?}");
+    assert!(
+        !committed || (got.acc >= 0.95 && got.ipaa_100 >= 0.70),
+        "{got:?}"
+    );
 
     // The served track ids: the same as the offline tracker's, and over the issue's bar.
     let tracks = score_tracks(&names, &observations);
@@ -156,6 +170,10 @@ async fn served_identities_score_like_eval_on_wildtrack_validation() {
         "{tracks:?} vs {expected_tracks:?}"
     );
     assert!((multi.idf1 - want.idf1).abs() < 1e-9, "{tracks:?}");
-    assert!(multi.idf1 >= 0.85, "{tracks:?}");
+    eprintln!(
+        "served track ids: multi-camera IDF1 {:.2}",
+        100.0 * multi.idf1
+    );
+    assert!(!committed || multi.idf1 >= 0.85, "{tracks:?}");
     server.shutdown().await.unwrap();
 }

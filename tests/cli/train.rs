@@ -1,7 +1,8 @@
 //! `crossview train` as a user runs it: writes the ONNX model (with metadata; the epoch chosen
 //! without labels on held-out frames), the SVG curve and the history; records the training-box
-//! filter and the declared frame rate; refuses a one-camera recording, a filter that leaves no
-//! boxes and a rate that leaves too few frames clearly.
+//! filter and the declared frame rate; fits the calibration on every frame, held-out ones
+//! included; refuses a one-camera recording, a filter that leaves no boxes and a rate that
+//! leaves too few frames clearly.
 use std::path::Path;
 use std::process::{Command, Output};
 
@@ -143,14 +144,15 @@ fn train_writes_model_curve_and_history() {
         String::from_utf8_lossy(&st.stderr)
     );
     assert!(String::from_utf8_lossy(&st.stdout).contains("val ACC"));
-    // The default population (one member per core, at least 4) trains every member to the
-    // end and exports the best 4 together; each is width 24.
+    // The default population (one member per core, at least 6) trains every member to the
+    // end and exports them all together; each is width 24.
     let (e, meta) = read_ensemble(&out).unwrap();
-    assert_eq!(e.members().len(), 4);
+    assert_eq!(e.members().len(), 6);
     assert!(e.members().iter().all(|w| w.config.width == 24));
     let pop = population(&meta);
     assert_none_dropped(&pop);
-    assert_eq!(pop["ensemble"].as_array().unwrap().len(), 4);
+    assert_eq!(pop["members"].as_array().unwrap().len(), 6);
+    assert_eq!(pop["ensemble"].as_array().unwrap().len(), 6);
     assert_eq!(meta.cameras.len(), 2);
     assert!((0.0..=0.9).contains(&meta.threshold));
     assert_eq!(meta.extra["crossview.training_data"], "train.jsonl");
@@ -267,4 +269,40 @@ fn a_faster_recording_trains_on_every_nth_frame_and_records_its_rate() {
         assert!(err.contains(says), "--fps {fps}: {err}");
         assert!(!out.exists());
     }
+}
+
+#[test]
+fn the_exported_calibration_is_fitted_on_every_frame_held_out_ones_included() {
+    // The last 10 % of the frames are held out of training for the label-free score; the
+    // calibration needs no labels, so it is fitted on all of them: the same table that
+    // `crossview model calibrate` fits on the whole recording with the run's seed.
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("train.jsonl");
+    write_recording(&data, &recording(3, 60, false)).unwrap();
+    let out = dir.path().join("m.onnx");
+    let args = [TINY, &["--population", "1", "--seed", "4"]].concat();
+    let log = String::from_utf8_lossy(&train_ok(&data, &out, &args).stderr).into_owned();
+    assert!(log.contains("held out"), "{log}");
+    let again = dir.path().join("again.onnx");
+    let st = Command::new(env!("CARGO_BIN_EXE_crossview"))
+        .args(["model", "calibrate", "--seed", "4", "--model"])
+        .arg(&out)
+        .arg("--data")
+        .arg(&data)
+        .arg("--out")
+        .arg(&again)
+        .output()
+        .unwrap();
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    let exported = read_ensemble(&out)
+        .unwrap()
+        .1
+        .calibration
+        .expect("calibrated");
+    let whole = read_ensemble(&again).unwrap().1.calibration.unwrap();
+    assert_eq!(exported, whole);
 }

@@ -24,6 +24,13 @@ use crate::trainer::{improves, score_label_free};
 use crossview_core::{Error, Result};
 use crossview_model::{EncoderWeights, Ensemble};
 
+/// Fewest members of the default population (more where the machine has more cores).
+pub const DEFAULT_MEMBERS: usize = 6;
+
+/// Members exported together by default: the encoder is this many times wider, and the
+/// per-frame encoder cost grows with it (BENCHMARKS.md, "Training").
+pub const DEFAULT_ENSEMBLE: usize = 6;
+
 /// How a population is run.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct PopulationOptions {
@@ -49,19 +56,20 @@ fn one() -> usize {
 }
 
 impl PopulationOptions {
-    /// The default for this machine: a member per core and at least 4, every member trained
-    /// to the end (no halving), ranked by the mean of 3 scorings, and the best 4 exported
-    /// together. Chosen on the WILDTRACK training frames (BENCHMARKS.md, "Training"): halving
-    /// at 25 % dropped members that ended best, and ensembles of 3–4 beat the best member.
+    /// The default for this machine: a member per core and at least [`DEFAULT_MEMBERS`],
+    /// every member trained to the end (no halving), ranked by the mean of 3 scorings, and the
+    /// best [`DEFAULT_ENSEMBLE`] exported together (on 2 to 6 cores: all of them). Chosen on
+    /// the WILDTRACK training frames (BENCHMARKS.md, "Training"): halving dropped members that
+    /// ended best, and every member added to the ensemble, up to all 6, raised accuracy.
     pub fn for_machine() -> Self {
         let threads = std::thread::available_parallelism().map_or(1, usize::from);
         PopulationOptions {
-            size: threads.max(4),
+            size: threads.max(DEFAULT_MEMBERS),
             threads,
             halve_at: Vec::new(),
             keep_at_least: threads,
             window: 3,
-            ensemble: 4,
+            ensemble: DEFAULT_ENSEMBLE,
         }
     }
 
