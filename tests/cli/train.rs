@@ -94,7 +94,11 @@ pub(crate) fn assert_none_dropped(pop: &serde_json::Value) {
 
 /// [`train`], which must succeed (its log is the failure message).
 pub(crate) fn train_ok(data: &Path, out: &Path, args: &[&str]) -> Output {
-    let st = train(data, out, args);
+    succeeded(train(data, out, args))
+}
+
+/// `st`, which must be a success (its log is the failure message).
+fn succeeded(st: Output) -> Output {
     assert!(
         st.status.success(),
         "{}",
@@ -138,11 +142,7 @@ fn train_writes_model_curve_and_history() {
         .arg(&out)
         .output()
         .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
-    );
+    let st = succeeded(st);
     assert!(String::from_utf8_lossy(&st.stdout).contains("val ACC"));
     // The default population (one member per core, at least 6) trains every member to the
     // end and exports them all together; each is width 24.
@@ -220,15 +220,10 @@ fn box_filter_is_recorded_and_an_empty_result_is_refused() {
     let train = |extra: &[&str], out: &Path| train(&data, out, &[TINY, extra].concat());
     // Boxes are 40-43 px of a 100 px image: 0.3 keeps them all and is stored in the model.
     let out = dir.path().join("kept.onnx");
-    let st = train(
+    succeeded(train(
         &["--min-box-height", "0.3", "--drop-static-iou", "0.95"],
         &out,
-    );
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
-    );
+    ));
     let (_, meta) = read_ensemble(&out).unwrap();
     let filter = &meta.extra["crossview.train_box_filter"];
     assert!(filter.contains("\"min_height\":0.3"), "{filter}");
@@ -284,19 +279,16 @@ fn the_exported_calibration_is_fitted_on_every_frame_held_out_ones_included() {
     let log = String::from_utf8_lossy(&train_ok(&data, &out, &args).stderr).into_owned();
     assert!(log.contains("held out"), "{log}");
     let again = dir.path().join("again.onnx");
-    let st = Command::new(env!("CARGO_BIN_EXE_crossview"))
-        .args(["model", "calibrate", "--seed", "4", "--model"])
-        .arg(&out)
-        .arg("--data")
-        .arg(&data)
-        .arg("--out")
-        .arg(&again)
-        .output()
-        .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
+    succeeded(
+        Command::new(env!("CARGO_BIN_EXE_crossview"))
+            .args(["model", "calibrate", "--seed", "4", "--model"])
+            .arg(&out)
+            .arg("--data")
+            .arg(&data)
+            .arg("--out")
+            .arg(&again)
+            .output()
+            .unwrap(),
     );
     let exported = read_ensemble(&out)
         .unwrap()
