@@ -11,7 +11,7 @@ use crossview_model::metadata::KEY_SCENE;
 use crossview_model::{
     EncoderConfig, EncoderWeights, Ensemble, ModelMetadata, export, write_ensemble_onnx, write_onnx,
 };
-use crossview_train::clean::BoxFilter;
+use crossview_train::prepare::{prepare, trained_filter, trained_fps};
 
 /// Model file tools.
 #[derive(Debug, Args)]
@@ -173,24 +173,14 @@ fn fit_calibration(
     let recording = crossview_data::recording::read_recording(data)?;
     super::eval::check_scene(&recording.scene, meta)?;
     let mut set = crossview_train::TrainingSet::from_recording(&recording, 1)?;
-    // Time-shifted pairs as far apart in seconds as in training: the declared rate, else
-    // the one the model was trained at.
-    let trained_fps = meta
-        .extra
-        .get("crossview.train_fps")
-        .and_then(|f| serde_json::from_str::<serde_json::Value>(f).ok())
-        .and_then(|v| v["fps"].as_f64());
+    // The frames and boxes the model was trained on, so that time-shifted pairs lie as far
+    // apart in seconds as in training: the declared rate, else the model's own, and its own
+    // training filter, when it records one.
     let fps = fps
-        .or(trained_fps)
+        .or_else(|| trained_fps(meta))
         .unwrap_or(crossview_train::data::REFERENCE_FPS);
-    set.thin_to_reference_rate(fps, 1)?;
-    // The boxes the model was trained on: its own training filter, when it records one.
-    let filter: BoxFilter = meta
-        .extra
-        .get("crossview.train_box_filter")
-        .and_then(|f| serde_json::from_str(f).ok())
-        .unwrap_or_default();
-    let stats = filter.apply(&mut set);
+    let filter = trained_filter(meta).unwrap_or_default();
+    let stats = prepare(&mut set, fps, &filter, 1)?;
     let mut encoder = ensemble.clone();
     let cal = crossview_train::calibrate::calibrate(&mut encoder, &set, seed)?;
     println!(

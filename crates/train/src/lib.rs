@@ -2,6 +2,8 @@
 //!
 //! - [`data`]: the recording as per-frame, per-camera normalised images.
 //! - [`clean`]: **[ours]** dropping static and small detector boxes before training.
+//! - [`prepare`]: a recording thinned and filtered as training uses it, and what a model
+//!   file records of that.
 //! - [`sampler`]: anchor/positive/negative triplets.
 //! - [`model`]: the candle encoder + decoder, convertible to [`crossview_model::EncoderWeights`].
 //! - [`losses`]: synchronization, re-projection and edge losses, batched over triplets
@@ -31,6 +33,7 @@ pub mod losses;
 pub mod member;
 pub mod model;
 pub mod population;
+pub mod prepare;
 pub mod pseudo;
 pub mod run;
 pub mod sampler;

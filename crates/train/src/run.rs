@@ -16,6 +16,7 @@ use crate::curve::write_svg;
 use crate::data::frame_step;
 use crate::label_free::LabelFreeScorer;
 use crate::population::{PopulationOptions, PopulationOutcome, train_population};
+use crate::prepare::{KEY_TRAIN_BOX_FILTER, KEY_TRAIN_FPS, prepare};
 use crate::sampler::MIN_FRAMES;
 use crate::trainer::{
     CheckpointOptions, Scoring, Select, TrainConfig, TrainOutcome, Validator, train_from,
@@ -318,15 +319,13 @@ fn read_training_set(opts: &RunOptions) -> Result<(Recording, TrainingSet, Strin
             e.report()
         ))
     })?;
-    set.thin_to_reference_rate(opts.fps, MIN_FRAMES)
-        .map_err(|e| match e {
-            Error::Training(m) => {
-                Error::Training(format!("training data {}: {m}", data_label(&opts.data)))
-            }
-            e => e,
-        })?;
     let filter = &opts.filter;
-    let removed = filter.apply(&mut set);
+    let removed = prepare(&mut set, opts.fps, filter, MIN_FRAMES).map_err(|e| match e {
+        Error::Training(m) => {
+            Error::Training(format!("training data {}: {m}", data_label(&opts.data)))
+        }
+        e => e,
+    })?;
     if !filter.is_off() {
         tracing::info!(
             before = removed.before,
@@ -448,11 +447,11 @@ fn metadata(
         serde_json::to_string(cfg).unwrap_or_default(),
     );
     extra.insert(
-        "crossview.train_box_filter".into(),
+        KEY_TRAIN_BOX_FILTER.into(),
         serde_json::to_string(&opts.filter).unwrap_or_default(),
     );
     extra.insert(
-        "crossview.train_fps".into(),
+        KEY_TRAIN_FPS.into(),
         serde_json::json!({"fps": opts.fps, "frame_step": frame_step(opts.fps).unwrap_or(1)})
             .to_string(),
     );
