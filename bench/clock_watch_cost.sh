@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Cost of the live clock watch (issue #30): the same open-loop load — one 7-camera scene
-# (models/wildtrack.onnx, a simulated WILDTRACK-shaped recording, ~30 people) at 100 frames/s
+# ($MODEL, default models/wildtrack.onnx; a simulated WILDTRACK-shaped recording, ~30 people) at 100 frames/s
 # over gRPC — against a fresh server with the watch off (--clock-watch-window 0) and on (the
 # defaults: 300 frames, one estimate per 10 s, ±10 frames), alternated twice. Per run: the
 # push-to-result latency percentiles, the estimates made and their CPU share (the summed
@@ -20,7 +20,7 @@ RATE=${RATE:-100}
 DURATION=${DURATION:-40s}
 TRANSPORT=grpc
 ON_ARGS=${ON_ARGS:-}
-MODEL=models/wildtrack.onnx
+MODEL=${MODEL:-models/wildtrack.onnx}
 export ORT_DYLIB_PATH=${ORT_DYLIB_PATH:-$PWD/.cache/onnxruntime/libonnxruntime.so.1.31.1}
 TARGET=http://127.0.0.1:$PORT
 

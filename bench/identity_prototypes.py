@@ -10,7 +10,7 @@ cameras reporting. Scores identity-derived ACC / IPAA-100 exactly as `crossview 
 (the pairwise and union-find rows reproduce the Rust figures to the last digit).
 
   cargo build --release -p crossview-bench --bin identity_dump
-  target/release/identity_dump models/wildtrack.onnx train.jsonl train_dump.jsonl
+  target/release/identity_dump models/wildtrack-w64.onnx train.jsonl train_dump.jsonl
   python3 bench/identity_prototypes.py train_dump.jsonl [--cameras 0,1,2] [--few N:T:B:VETO] METHOD:T:B[:VETO] ... [chains]
 
 METHOD: uf (union-find on S), gaec (max(S,P) links + support, min(0, P - t) elsewhere: what

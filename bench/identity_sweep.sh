@@ -2,7 +2,8 @@
 # shellcheck disable=SC2086 # METHODS and GRID are lists of settings, split on purpose
 # The identity step's selection and report runs (BENCHMARKS.md, "Identities"): the grid over
 # t × b × veto share on the WILDTRACK training frames (the selection set) under
-# models/wildtrack.onnx and every model in $ENSEMBLES (the default trainer's outputs, e.g.
+# $WILDTRACK_MODEL (default models/wildtrack-w64.onnx, the file the recorded selection used)
+# and every model in $ENSEMBLES (the default trainer's outputs, e.g.
 # "runs/s1.onnx runs/s2.onnx"), and on the simulator's square4 presets with models/demo.onnx,
 # ranked by bench/identity_pick.py; then validation frames (report only) with the parameter
 # spread (±50 %) and camera subsets. Writes markdown tables to $OUT (default /tmp/identity_sweep).
@@ -14,6 +15,7 @@ mkdir -p "$OUT"
 cargo build --release -p crossview -p crossview-bench --bin crossview --bin identity_sweep
 B=target/release/crossview
 S=target/release/identity_sweep
+WT=${WILDTRACK_MODEL:-models/wildtrack-w64.onnx}
 GT=${WILDTRACK_GT:-../shared/data/wildtrack/annotations_positions}
 METHODS="clustering:0.4:0.125:0.5 union-find:0.5:0.3"
 GRID=""
@@ -24,15 +26,15 @@ for split in train val; do
   $B import wildtrack-gt --dir "$GT" --split $split --out "$OUT/$split.jsonl"
 done
 names=(wt)
-$S models/wildtrack.onnx "$OUT/train.jsonl" $GRID > "$OUT/grid_wt.md"
+$S "$WT" "$OUT/train.jsonl" $GRID > "$OUT/grid_wt.md"
 for m in ${ENSEMBLES:-}; do
   name=$(basename "$m" .onnx); names+=("$name")
   $S "$m" "$OUT/train.jsonl" $GRID > "$OUT/grid_$name.md"
 done
 for split in train val; do
-  $S models/wildtrack.onnx "$OUT/$split.jsonl" --spread $METHODS > "$OUT/wildtrack_$split.md"
+  $S "$WT" "$OUT/$split.jsonl" --spread $METHODS > "$OUT/wildtrack_$split.md"
   for cams in 0,1 3,5 0,1,2 2,4,6 0,1,2,3 3,4,5,6; do
-    $S models/wildtrack.onnx "$OUT/$split.jsonl" --cameras $cams $METHODS
+    $S "$WT" "$OUT/$split.jsonl" --cameras $cams $METHODS
   done > "$OUT/subsets_$split.md"
 done
 for people in 1 2 3 default; do

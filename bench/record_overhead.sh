@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Recording overhead of `crossview serve --record` (issue #16): the same open-loop load — one
-# 7-camera scene (models/wildtrack.onnx) at 100 frames/s over gRPC — against a fresh server
+# 7-camera scene ($MODEL, default models/wildtrack.onnx) at 100 frames/s over gRPC — against a fresh server
 # without and with --record, and the push-to-result latency percentiles of each, plus what the
 # recorder wrote and dropped. Bounded: every run has --duration. Figures only on an idle
 # machine (BENCHMARKS.md).
@@ -19,7 +19,7 @@ RATE=${RATE:-100}
 DURATION=${DURATION:-30s}
 TRANSPORT=${TRANSPORT:-grpc}
 RECORD_ARGS=${RECORD_ARGS:-}
-MODEL=models/wildtrack.onnx
+MODEL=${MODEL:-models/wildtrack.onnx}
 export ORT_DYLIB_PATH=${ORT_DYLIB_PATH:-$PWD/.cache/onnxruntime/libonnxruntime.so.1.31.1}
 TARGET=http://127.0.0.1:$PORT
 
