@@ -78,8 +78,9 @@ pub struct CalibrateArgs {
     /// Seed of the time-shift draws.
     #[arg(long, default_value_t = 0, env = "CROSSVIEW_SEED")]
     pub seed: u64,
-    /// Frames per second of the recording (default: the rate the model was trained at, else
-    /// 2); a faster one is thinned as training thins it (`crossview train --fps`).
+    /// Frames per second of the recording (default: the rate its header declares, else the
+    /// rate the model was trained at, else 2); a faster one is thinned as training thins it
+    /// (`crossview train --fps`).
     #[arg(long)]
     pub fps: Option<f64>,
 }
@@ -174,9 +175,10 @@ fn fit_calibration(
     super::eval::check_scene(&recording.scene, meta)?;
     let mut set = crossview_train::TrainingSet::from_recording(&recording, 1)?;
     // The frames and boxes the model was trained on, so that time-shifted pairs lie as far
-    // apart in seconds as in training: the declared rate, else the model's own, and its own
-    // training filter, when it records one.
+    // apart in seconds as in training: the rate given, else the recording's header's, else
+    // the model's own, and its own training filter, when it records one.
     let fps = fps
+        .or(recording.fps)
         .or_else(|| trained_fps(meta))
         .unwrap_or(crossview_train::data::REFERENCE_FPS);
     let filter = trained_filter(meta).unwrap_or_default();

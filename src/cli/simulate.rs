@@ -41,8 +41,8 @@ pub struct SimulateArgs {
     /// Target crowd density in people per m² of the area (instead of --people).
     #[arg(long)]
     pub density: Option<f64>,
-    /// Frames per second (train on such a recording with `crossview train --fps` of the
-    /// same rate).
+    /// Frames per second, declared in the recording's header (`crossview train` reads it
+    /// there).
     #[arg(long, default_value_t = 10.0)]
     pub fps: f64,
     /// Id of the first frame.
@@ -137,7 +137,7 @@ pub fn run(args: SimulateArgs) -> anyhow::Result<()> {
     }
     let mut sim = Simulator::new(&cfg)?;
     let start = std::time::Instant::now();
-    let mut writer = RecordingWriter::create(&args.out, sim.scene())?;
+    let mut writer = RecordingWriter::create(&args.out, sim.scene(), Some(cfg.fps))?;
     let mut boxes = 0usize;
     while let Some(frame) = sim.next_frame() {
         boxes += frame.num_boxes();

@@ -32,7 +32,8 @@ pub struct SyncCheckArgs {
     #[arg(long, required = true)]
     pub data: Vec<PathBuf>,
     /// Frames per second of the recording (one frame is one frame step of ids, e.g. 2 for
-    /// WILDTRACK, whose ids step by 5 every 0.5 s): offsets are also given in seconds.
+    /// WILDTRACK, whose ids step by 5 every 0.5 s): offsets are also given in seconds
+    /// [default: the rate the recording's header declares, if any].
     #[arg(long)]
     pub fps: Option<f64>,
     /// Largest offset searched, in frame steps either way (a step is the recording's gap
@@ -110,10 +111,11 @@ pub fn run(args: SyncCheckArgs) -> anyhow::Result<()> {
         workers,
     )?;
     let scene = &recording.scene;
+    let fps = args.fps.or(recording.fps);
     let report = Report {
         scene: &scene.name,
         frames: recording.frames.len(),
-        fps: args.fps,
+        fps,
         reference: &scene.cameras[estimate.reference].name,
         step,
         cameras: estimate
@@ -124,7 +126,7 @@ pub fn run(args: SyncCheckArgs) -> anyhow::Result<()> {
                 offset: c,
                 seconds: c
                     .refined
-                    .zip(args.fps)
+                    .zip(fps)
                     .map(|(r, fps)| f64::from(r) / step as f64 / fps),
             })
             .collect(),

@@ -132,12 +132,13 @@ pub struct TrainArgs {
     /// Frame distance (positions in the recording) at which `--drop-static-iou` looks.
     #[arg(long, default_value_t = 10)]
     pub static_offset: usize,
-    /// [ours] Frames per second of the training recording. The method's negatives lie 5–19
-    /// frames from their anchor at 2 frames per second (WILDTRACK's rate): a faster
-    /// recording trains on one frame in round(fps / 2) so that they stay seconds apart
-    /// (the simulator writes 10 by default).
-    #[arg(long, default_value_t = crossview_train::data::REFERENCE_FPS, env = "CROSSVIEW_TRAIN_FPS")]
-    pub fps: f64,
+    /// [ours] Frames per second of the training recording [default: the rate its header
+    /// declares (`crossview simulate` and `crossview import` write it), else 2]. The method's
+    /// negatives lie 5–19 frames from their anchor at 2 frames per second (WILDTRACK's rate):
+    /// a faster recording trains on one frame in round(fps / 2) so that they stay seconds
+    /// apart.
+    #[arg(long, env = "CROSSVIEW_TRAIN_FPS")]
+    pub fps: Option<f64>,
     /// [ours] Fraction of the recording's frames, at its end, held out from training to
     /// score each epoch without labels (0 = no label-free scoring).
     #[arg(long, default_value_t = 0.1)]

@@ -68,7 +68,11 @@ fn recording() -> Recording {
             frame
         })
         .collect();
-    Recording { scene, frames }
+    Recording {
+        scene,
+        frames,
+        fps: None,
+    }
 }
 
 fn crossview(args: &[&str]) -> String {

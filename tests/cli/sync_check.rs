@@ -53,6 +53,9 @@ fn sync_check_finds_a_lagging_camera_and_its_declared_offset_removes_it() {
     let report = check(&rec, &[]);
     assert_eq!(offsets(&report), vec![Some(0); 4], "{report}");
     assert_eq!(report["step"], 1);
+    // The simulator declares its rate in the header: offsets come in seconds unasked.
+    assert_eq!(report["fps"], 10.0, "{report}");
+    assert_eq!(report["cameras"][1]["seconds"], 0.0, "{report}");
 
     let report = check(&rec, &["--simulate-lag", "cam1:-3", "--fps", "10"]);
     assert_eq!(

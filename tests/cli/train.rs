@@ -45,6 +45,7 @@ pub(crate) fn recording(cameras: usize, frames: usize, ids: bool) -> Recording {
             cameras: cams,
         },
         frames,
+        fps: None,
     }
 }
 
@@ -241,7 +242,7 @@ fn box_filter_is_recorded_and_an_empty_result_is_refused() {
 }
 
 #[test]
-fn a_faster_recording_trains_on_every_nth_frame_and_records_its_rate() {
+fn a_faster_recording_trains_on_every_nth_frame_and_records_its_rate_given_or_declared() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("train.jsonl");
     write_recording(&data, &recording(2, 60, false)).unwrap();
@@ -255,6 +256,21 @@ fn a_faster_recording_trains_on_every_nth_frame_and_records_its_rate() {
     let rate: serde_json::Value = serde_json::from_str(&meta.extra["crossview.train_fps"]).unwrap();
     assert_eq!(rate["fps"], 10.0);
     assert_eq!(rate["frame_step"], 5);
+    // The same rate declared in the recording's header needs no flag; a flag overrides it.
+    let declared = dir.path().join("declared.jsonl");
+    let mut rec = recording(2, 60, false);
+    rec.fps = Some(10.0);
+    write_recording(&declared, &rec).unwrap();
+    for (flag, step) in [(&[][..], 5), (&["--fps", "2"][..], 1)] {
+        let out = dir.path().join(format!("declared-{step}.onnx"));
+        let st = train_ok(&declared, &out, &[&small[..], flag].concat());
+        let log = String::from_utf8_lossy(&st.stderr);
+        assert_eq!(log.contains("one frame in 5"), step == 5, "{flag:?}: {log}");
+        let (_, meta) = read_ensemble(&out).unwrap();
+        let rate: serde_json::Value =
+            serde_json::from_str(&meta.extra["crossview.train_fps"]).unwrap();
+        assert_eq!(rate["frame_step"], step, "{flag:?}");
+    }
     // 30 per second leaves 4 frames: refused, naming the rate; so is a rate that is no rate.
     for (fps, says) in [("30", "30 fps"), ("0", "fps"), ("NaN", "fps")] {
         let out = dir.path().join(format!("no-{fps}.onnx"));
@@ -297,4 +313,54 @@ fn the_exported_calibration_is_fitted_on_every_frame_held_out_ones_included() {
         .expect("calibrated");
     let whole = read_ensemble(&again).unwrap().1.calibration.unwrap();
     assert_eq!(exported, whole);
+}
+
+#[test]
+fn model_calibrate_thins_a_recording_at_the_rate_its_header_declares() {
+    // Trained at the reference rate (an undeclared recording); calibrated on a copy that
+    // declares 10 frames per second: the same table as the flag `--fps 10` gives, not the
+    // model's own rate.
+    let dir = tempfile::tempdir().unwrap();
+    let plain = dir.path().join("plain.jsonl");
+    let declared = dir.path().join("declared.jsonl");
+    succeeded(
+        Command::new(env!("CARGO_BIN_EXE_crossview"))
+            .args([
+                "simulate", "--preset", "square4", "--frames", "300", "--no-ids",
+            ])
+            .arg("--out")
+            .arg(&declared)
+            .output()
+            .unwrap(),
+    );
+    let mut rec = crossview_data::read_recording(&declared).unwrap();
+    assert_eq!(rec.fps, Some(10.0), "the simulator declares its rate");
+    rec.fps = None;
+    write_recording(&plain, &rec).unwrap();
+    let model = dir.path().join("m.onnx");
+    train_ok(&plain, &model, &[TINY, &["--population", "1"]].concat());
+    let calibrate = |data: &Path, extra: &[&str], name: &str| {
+        let out = dir.path().join(name);
+        succeeded(
+            Command::new(env!("CARGO_BIN_EXE_crossview"))
+                .args(["model", "calibrate", "--model"])
+                .arg(&model)
+                .arg("--data")
+                .arg(data)
+                .args(extra)
+                .arg("--out")
+                .arg(&out)
+                .output()
+                .unwrap(),
+        );
+        read_ensemble(&out).unwrap().1.calibration.unwrap()
+    };
+    let by_header = calibrate(&declared, &[], "header.onnx");
+    let by_flag = calibrate(&plain, &["--fps", "10"], "flag.onnx");
+    let by_model = calibrate(&plain, &[], "model.onnx");
+    assert_eq!(by_header, by_flag);
+    assert!(
+        by_model.samples[0] > 4 * by_header.samples[0],
+        "{by_model:?} vs {by_header:?}"
+    );
 }

@@ -161,7 +161,7 @@ fn clock_offsets_group_batches_and_round_trip() {
 
 #[test]
 fn streaming_reader_and_writer_agree() {
-    let mut writer = RecordingWriter::new(Vec::new(), "memory", &scene()).unwrap();
+    let mut writer = RecordingWriter::new(Vec::new(), "memory", &scene(), None).unwrap();
     for f in 0..50u64 {
         let batch = Batch {
             camera: if f % 2 == 0 { "a" } else { "b" }.into(),
@@ -182,7 +182,7 @@ fn streaming_reader_and_writer_agree() {
 
 #[test]
 fn writer_rejects_unknown_camera() {
-    let mut writer = RecordingWriter::new(Vec::new(), "memory", &scene()).unwrap();
+    let mut writer = RecordingWriter::new(Vec::new(), "memory", &scene(), None).unwrap();
     let err = writer
         .write_batch(&Batch {
             camera: "zz".into(),
@@ -414,6 +414,7 @@ fn helpers_filter_strip_and_write_back() {
     let rec = Recording {
         scene: scene(),
         frames,
+        fps: None,
     };
     assert_eq!(rec.filter_frames(5..=10).frame_ids(), vec![5, 10]);
     assert_eq!(rec.filter_frames(11..).frame_ids(), vec![15]);
@@ -460,7 +461,7 @@ fn duplicates_are_found_with_more_than_64_cameras() {
         name: "wide".into(),
         cameras,
     };
-    let mut writer = RecordingWriter::new(Vec::new(), "mem", &scene).unwrap();
+    let mut writer = RecordingWriter::new(Vec::new(), "mem", &scene, None).unwrap();
     for cam in ["c1", "c65", "c66", "c65"] {
         writer
             .write_batch(&Batch {
@@ -500,8 +501,9 @@ fn cli_split_reads_stdin_and_writes_stdout() {
     let rec = Recording {
         scene: scene(),
         frames,
+        fps: None,
     };
-    let mut input = RecordingWriter::new(Vec::new(), "mem", &rec.scene).unwrap();
+    let mut input = RecordingWriter::new(Vec::new(), "mem", &rec.scene, None).unwrap();
     for frame in &rec.frames {
         input.write_frame(frame).unwrap();
     }

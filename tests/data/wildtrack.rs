@@ -29,6 +29,8 @@ fn assert_well_formed(rec: &Recording) {
         }
     }
     assert!(rec.frames.windows(2).all(|w| w[0].frame_id < w[1].frame_id));
+    // One annotated frame every 0.5 s, declared so that training need not be told.
+    assert_eq!(rec.fps, Some(wildtrack::ANNOTATED_FPS));
 }
 
 #[test]

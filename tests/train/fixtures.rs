@@ -62,6 +62,7 @@ pub fn synthetic(frames: usize, people: usize, seed: u64) -> Recording {
             cameras: cams,
         },
         frames: out,
+        fps: None,
     }
 }
 

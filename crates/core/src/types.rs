@@ -248,10 +248,28 @@ impl Detection {
 }
 
 /// A recording's first line, `{"scene": {...}}` (SPEC §7), borrowed for writing: the one
-/// definition of the line every writer uses.
+/// definition of the line every writer uses. **[ours]** `"fps"`, when the writer knows it, is
+/// the recording's frame rate (frames per second of its frame ids), so that training and
+/// clock-offset estimates need not be told it.
 #[derive(Debug, Serialize)]
 pub struct HeaderLine<'a> {
     pub scene: &'a SceneSpec,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fps: Option<f64>,
+}
+
+/// Highest frame rate a recording or a simulation may declare, in frames per second.
+pub const MAX_FPS: f64 = 1000.0;
+
+/// Checks a declared frame rate: finite, above 0 and at most [`MAX_FPS`]. The error says why.
+pub fn check_fps(fps: f64) -> std::result::Result<(), String> {
+    if fps.is_finite() && fps > 0.0 && fps <= MAX_FPS {
+        Ok(())
+    } else {
+        Err(format!(
+            "fps must be a frame rate in (0, {MAX_FPS}] frames per second, got {fps}"
+        ))
+    }
 }
 
 /// One batch line of a recording (SPEC §7): the JSON of a [`Batch`], borrowed for writing

@@ -27,6 +27,9 @@ pub(crate) const WIDTH: u32 = 1920;
 pub(crate) const HEIGHT: u32 = 1080;
 /// Frame-id step between annotated frames.
 pub(crate) const FRAME_STEP: u64 = 5;
+/// Frames per second of the imported recordings: one annotated frame every 0.5 s (the
+/// videos' 10 frames per second, one in [`FRAME_STEP`]), written into their header.
+pub const ANNOTATED_FPS: f64 = 2.0;
 /// The last frame id of the full annotated sequence.
 pub(crate) const LAST_FRAME: u64 = 1995;
 
@@ -242,6 +245,7 @@ fn finish(frames: Vec<Frame>, clipped: usize, dropped: usize) -> Result<Imported
     let recording = Recording {
         scene: scene(),
         frames,
+        fps: Some(ANNOTATED_FPS),
     };
     for frame in &recording.frames {
         for (c, view) in frame.views.iter().enumerate() {

@@ -241,6 +241,7 @@ mod tests {
         Recording {
             scene,
             frames: vec![f0, f1],
+            fps: None,
         }
     }
 

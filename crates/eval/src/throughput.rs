@@ -201,6 +201,7 @@ mod tests {
                 cameras,
             },
             frames: vec![frame],
+            fps: None,
         }
     }
 

@@ -130,7 +130,15 @@ mod tests {
                 f
             })
             .collect();
-        let set = TrainingSet::from_recording(&Recording { scene, frames }, 20).unwrap();
+        let set = TrainingSet::from_recording(
+            &Recording {
+                scene,
+                frames,
+                fps: None,
+            },
+            20,
+        )
+        .unwrap();
         let (sync, shifted) = calibration_samples(&mut BottomCentre, &set, 1).unwrap();
         assert_eq!(sync.len(), 60 * 2 * 3);
         assert!(shifted.len() == sync.len());

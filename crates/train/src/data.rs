@@ -202,7 +202,15 @@ mod tests {
                 f
             })
             .collect();
-        TrainingSet::from_recording(&Recording { scene, frames }, 1).unwrap()
+        TrainingSet::from_recording(
+            &Recording {
+                scene,
+                frames,
+                fps: None,
+            },
+            1,
+        )
+        .unwrap()
     }
 
     #[test]

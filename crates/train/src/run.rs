@@ -47,8 +47,9 @@ pub struct RunOptions {
     pub filter: BoxFilter,
     /// **[ours]** Frames per second of the training recording: a faster one trains on one
     /// frame in [`frame_step`], so negatives stay seconds away
-    /// ([`REFERENCE_FPS`](crate::data::REFERENCE_FPS)).
-    pub fps: f64,
+    /// ([`REFERENCE_FPS`](crate::data::REFERENCE_FPS)). `None`: the rate the recording's
+    /// header declares, else the reference rate.
+    pub fps: Option<f64>,
     /// Share of the last frames held out for the label-free score (0 = none).
     pub holdout: f64,
     /// What chooses the exported epoch.
@@ -93,6 +94,7 @@ fn data_label(data: &[PathBuf]) -> String {
 /// Runs one training run (see the module docs) and writes its files.
 pub fn run(opts: RunOptions) -> Result<RunReport> {
     let (rec, mut set, read_summary) = read_training_set(&opts)?;
+    let fps = training_fps(&opts, &rec);
     // The calibration is fitted on every frame, the held-out ones included (no labels are
     // involved): on WILDTRACK's training frames that beat fitting it on the 90 % trained on
     // (BENCHMARKS.md, "Training").
@@ -128,6 +130,7 @@ pub fn run(opts: RunOptions) -> Result<RunReport> {
     // The run's own shape (an `--init` model's overrides the requested one).
     let opts = RunOptions {
         config: cfg.clone(),
+        fps: Some(fps),
         ..opts
     };
     let mut meta = metadata(
@@ -160,7 +163,7 @@ pub fn run(opts: RunOptions) -> Result<RunReport> {
     export(&opts.out, &ensemble, meta, &whole, &opts)?;
     let curve = write_curve_and_history(&opts, &outcome, &data_name)?;
     let mut summary = summary(&outcome, threshold);
-    warn_if_unsynchronized(&outcome, opts.fps);
+    warn_if_unsynchronized(&outcome, fps);
     if let Some(p) = &population {
         summary.push_str(&format!("; population: {}", p.summary()));
         let m = ensemble.members().len();
@@ -291,6 +294,12 @@ fn train_members(
 
 /// Reads the training recording and turns it into the cleaned training set; what reading
 /// clipped and skipped, in words.
+/// The frame rate training assumes for `rec`: the one given, else the one its header
+/// declares, else [`REFERENCE_FPS`](crate::data::REFERENCE_FPS) (WILDTRACK's).
+fn training_fps(opts: &RunOptions, rec: &Recording) -> f64 {
+    opts.fps.or(rec.fps).unwrap_or(crate::data::REFERENCE_FPS)
+}
+
 fn read_training_set(opts: &RunOptions) -> Result<(Recording, TrainingSet, String)> {
     let (rec, read) = read_recordings(&opts.data, opts.strict)?;
     let mut read_summary = format!(
@@ -320,12 +329,13 @@ fn read_training_set(opts: &RunOptions) -> Result<(Recording, TrainingSet, Strin
         ))
     })?;
     let filter = &opts.filter;
-    let removed = prepare(&mut set, opts.fps, filter, MIN_FRAMES).map_err(|e| match e {
-        Error::Training(m) => {
-            Error::Training(format!("training data {}: {m}", data_label(&opts.data)))
-        }
-        e => e,
-    })?;
+    let removed =
+        prepare(&mut set, training_fps(opts, &rec), filter, MIN_FRAMES).map_err(|e| match e {
+            Error::Training(m) => {
+                Error::Training(format!("training data {}: {m}", data_label(&opts.data)))
+            }
+            e => e,
+        })?;
     if !filter.is_off() {
         tracing::info!(
             before = removed.before,
@@ -452,8 +462,11 @@ fn metadata(
     );
     extra.insert(
         KEY_TRAIN_FPS.into(),
-        serde_json::json!({"fps": opts.fps, "frame_step": frame_step(opts.fps).unwrap_or(1)})
-            .to_string(),
+        {
+            let fps = opts.fps.unwrap_or(crate::data::REFERENCE_FPS);
+            serde_json::json!({"fps": fps, "frame_step": frame_step(fps).unwrap_or(1)})
+        }
+        .to_string(),
     );
     extra.insert(
         "crossview.selection".into(),

@@ -73,6 +73,7 @@ pub fn read_recordings(paths: &[impl AsRef<Path>], strict: bool) -> Result<(Reco
     let several = files.len() > 1 || paths.iter().any(|p| p.as_ref().is_dir());
     let mut stats = ReadStats::default();
     let mut first: Option<(SceneSpec, String)> = None;
+    let mut fps: Option<Option<f64>> = None;
     let mut appearance = AppearanceLen::default();
     let mut assembler: Option<FrameAssembler> = None;
     let mut last_problem: Option<Error> = None;
@@ -114,6 +115,23 @@ pub fn read_recordings(paths: &[impl AsRef<Path>], strict: bool) -> Result<(Reco
                         camera_list(reader.scene()),
                         scene.name,
                         camera_list(scene)
+                    ),
+                });
+            }
+            Some(_) => {}
+        }
+        match fps {
+            None => fps = Some(reader.fps()),
+            Some(rate) if rate != reader.fps() => {
+                let shown = |r: Option<f64>| r.map_or("none".to_string(), |r| r.to_string());
+                return Err(Error::Format {
+                    source_name: name,
+                    line: 1,
+                    message: format!(
+                        "frame rate {} differs from {} of {}: the files of one recording must declare the same fps",
+                        shown(reader.fps()),
+                        shown(rate),
+                        first.as_ref().map_or("", |f| f.1.as_str())
                     ),
                 });
             }
@@ -183,6 +201,7 @@ pub fn read_recordings(paths: &[impl AsRef<Path>], strict: bool) -> Result<(Reco
         Recording {
             frames: assembler.finish(),
             scene,
+            fps: fps.flatten(),
         },
         stats,
     ))

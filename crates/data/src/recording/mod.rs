@@ -1,4 +1,6 @@
-//! The SPEC §7 JSONL recording: a scene header line, then one camera batch per line.
+//! The SPEC §7 JSONL recording: a scene header line, then one camera batch per line. **[ours]**
+//! The header may also declare the recording's frame rate, `{"scene": {...}, "fps": 10}`
+//! ([`Recording::fps`]); a rate that is no frame rate is an error on line 1.
 //!
 //! - [`read_recording`] loads a whole recording into a [`Recording`]: one file, stdin (path
 //!   `-`) or a directory; [`read_recordings`] several of them as one recording.
@@ -58,12 +60,18 @@ use reader::AppearanceLen;
 pub struct Recording {
     pub scene: SceneSpec,
     pub frames: Vec<Frame>,
+    /// **[ours]** The frame rate its header declares (frames per second of its frame ids;
+    /// `crossview simulate` and the WILDTRACK importers write it), `None` when it declares
+    /// none.
+    pub fps: Option<f64>,
 }
 
-/// The first line of a recording: `{"scene": {...}}`.
+/// The first line of a recording: `{"scene": {...}}`, with an optional `"fps"`.
 #[derive(Debug, Serialize, Deserialize)]
 struct Header {
     scene: SceneSpec,
+    #[serde(default)]
+    fps: Option<f64>,
 }
 
 /// Checks a scene is usable: a name, at least one camera, unique camera names, positive sizes.
@@ -142,6 +150,7 @@ impl Recording {
         Ok(Recording {
             frames: assembler.finish(),
             scene,
+            fps: None,
         })
     }
 
@@ -163,6 +172,7 @@ impl Recording {
     pub fn filter_frames(&self, range: impl RangeBounds<u64>) -> Recording {
         Recording {
             scene: self.scene.clone(),
+            fps: self.fps,
             frames: self
                 .frames
                 .iter()

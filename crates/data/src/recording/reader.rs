@@ -77,6 +77,7 @@ pub struct RecordingReader<R> {
     /// The last line read was not complete JSON (or not UTF-8).
     not_json: bool,
     scene: SceneSpec,
+    fps: Option<f64>,
     pub(super) appearance: AppearanceLen,
     /// Per frame id, a bitset of the cameras that reported it (duplicate detection);
     /// `None` when the check is switched off.
@@ -132,6 +133,7 @@ impl<R: BufRead> RecordingReader<R> {
                 name: String::new(),
                 cameras: Vec::new(),
             },
+            fps: None,
             appearance: AppearanceLen::default(),
             seen: Some(HashMap::new()),
             done: false,
@@ -147,7 +149,7 @@ impl<R: BufRead> RecordingReader<R> {
                 let err = this.format_err(
                     this.line_no,
                     format!(
-                        "invalid scene header (expected {{\"scene\": {{\"name\", \"cameras\"}}}}): {e}"
+                        "invalid scene header (expected {{\"scene\": {{\"name\", \"cameras\"}}}}, optionally with \"fps\": frames per second): {e}"
                     ),
                 );
                 if this.unterminated && (e.is_syntax() || e.is_eof()) {
@@ -160,13 +162,23 @@ impl<R: BufRead> RecordingReader<R> {
         };
         validate_scene(&header.scene)
             .map_err(|m| this.format_err(this.line_no, format!("invalid scene header: {m}")))?;
+        if let Some(fps) = header.fps {
+            crossview_core::types::check_fps(fps)
+                .map_err(|m| this.format_err(this.line_no, format!("invalid scene header: {m}")))?;
+        }
         this.scene = header.scene;
+        this.fps = header.fps;
         Ok(Start::Reader(Box::new(this)))
     }
 
     /// The scene declared by the header.
     pub fn scene(&self) -> &SceneSpec {
         &self.scene
+    }
+
+    /// The frame rate declared by the header, if any.
+    pub fn fps(&self) -> Option<f64> {
+        self.fps
     }
 
     /// Switches off duplicate-batch detection, which keeps one small bitset per frame id

@@ -20,28 +20,38 @@ pub struct RecordingWriter<W: Write> {
 }
 
 impl RecordingWriter<Box<dyn Write>> {
-    /// Creates (truncates) `path` (`-` = stdout) and writes the header.
-    pub fn create(path: impl AsRef<Path>, scene: &SceneSpec) -> Result<Self> {
+    /// Creates (truncates) `path` (`-` = stdout) and writes the header, with the frame rate
+    /// `fps` when it is known.
+    pub fn create(path: impl AsRef<Path>, scene: &SceneSpec, fps: Option<f64>) -> Result<Self> {
         let path = path.as_ref();
         let inner: Box<dyn Write> = if path == Path::new("-") {
             Box::new(std::io::stdout())
         } else {
             Box::new(File::create(path).map_err(|e| Error::io(path, e))?)
         };
-        RecordingWriter::new(inner, path.display().to_string(), scene)
+        RecordingWriter::new(inner, path.display().to_string(), scene, fps)
     }
 }
 
 impl<W: Write> RecordingWriter<W> {
-    /// Wraps a writer (`dest_name` names it in errors) and writes the header line.
-    pub fn new(writer: W, dest_name: impl Into<String>, scene: &SceneSpec) -> Result<Self> {
+    /// Wraps a writer (`dest_name` names it in errors) and writes the header line, with the
+    /// frame rate `fps` when it is known.
+    pub fn new(
+        writer: W,
+        dest_name: impl Into<String>,
+        scene: &SceneSpec,
+        fps: Option<f64>,
+    ) -> Result<Self> {
         validate_scene(scene).map_err(|m| Error::invalid("scene", m))?;
+        if let Some(fps) = fps {
+            crossview_core::types::check_fps(fps).map_err(|m| Error::invalid("fps", m))?;
+        }
         let mut this = RecordingWriter {
             dest_name: dest_name.into(),
             writer: BufWriter::new(writer),
             scene: scene.clone(),
         };
-        this.write_json(&HeaderLine { scene })?;
+        this.write_json(&HeaderLine { scene, fps })?;
         Ok(this)
     }
 
@@ -106,7 +116,7 @@ impl<W: Write> RecordingWriter<W> {
 
 /// Writes a whole recording to `path` (`-` = stdout).
 pub fn write_recording(path: impl AsRef<Path>, recording: &Recording) -> Result<()> {
-    let mut writer = RecordingWriter::create(path, &recording.scene)?;
+    let mut writer = RecordingWriter::create(path, &recording.scene, recording.fps)?;
     for frame in &recording.frames {
         writer.write_frame(frame)?;
     }

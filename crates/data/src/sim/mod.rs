@@ -106,12 +106,7 @@ impl SimConfig {
     /// Checks every setting.
     pub fn validate(&self) -> Result<()> {
         self.scene.validate()?;
-        if !self.fps.is_finite() || self.fps <= 0.0 || self.fps > 1000.0 {
-            return Err(Error::invalid(
-                "fps",
-                format!("must be in (0, 1000], got {}", self.fps),
-            ));
-        }
+        crossview_core::types::check_fps(self.fps).map_err(|m| Error::invalid("fps", m))?;
         if self.frame_step == 0 {
             return Err(Error::invalid("frame_step", "must be at least 1"));
         }
@@ -295,5 +290,9 @@ pub fn simulate(cfg: &SimConfig) -> Result<Recording> {
     let sim = Simulator::new(cfg)?;
     let scene = sim.scene().clone();
     let frames = sim.collect();
-    Ok(Recording { scene, frames })
+    Ok(Recording {
+        scene,
+        frames,
+        fps: Some(cfg.fps),
+    })
 }

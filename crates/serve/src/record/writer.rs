@@ -78,10 +78,14 @@ pub(super) struct Writer {
     last_reconcile: Instant,
 }
 
-/// A recording's first line for `spec`, newline included.
+/// A recording's first line for `spec`, newline included. The server does not know the
+/// cameras' frame rate, so the header declares none.
 fn header_line(spec: &SceneSpec) -> Result<Vec<u8>> {
-    let mut header = serde_json::to_vec(&HeaderLine { scene: spec })
-        .map_err(|e| Error::internal_from("cannot serialize the scene header", e))?;
+    let mut header = serde_json::to_vec(&HeaderLine {
+        scene: spec,
+        fps: None,
+    })
+    .map_err(|e| Error::internal_from("cannot serialize the scene header", e))?;
     header.push(b'\n');
     Ok(header)
 }
