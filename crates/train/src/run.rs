@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use crossview_core::{CameraSpec, Error, Result};
-use crossview_data::recording::{Recording, read_recording, read_recordings};
+use crossview_data::recording::read_recording;
 use crossview_model::export::{read_ensemble, write_ensemble_onnx};
 use crossview_model::{Ensemble, ModelMetadata};
 
@@ -16,7 +16,7 @@ use crate::curve::write_svg;
 use crate::data::frame_step;
 use crate::label_free::LabelFreeScorer;
 use crate::population::{PopulationOptions, PopulationOutcome, train_population};
-use crate::prepare::{KEY_TRAIN_BOX_FILTER, KEY_TRAIN_FPS, prepare};
+use crate::prepare::{KEY_TRAIN_BOX_FILTER, KEY_TRAIN_FPS, Loaded, read_training_set};
 use crate::sampler::MIN_FRAMES;
 use crate::trainer::{
     CheckpointOptions, Scoring, Select, TrainConfig, TrainOutcome, Validator, train_from,
@@ -83,18 +83,14 @@ pub struct RunReport {
     pub curve: PathBuf,
 }
 
-/// The training data's paths, for messages.
-fn data_label(data: &[PathBuf]) -> String {
-    data.iter()
-        .map(|p| p.display().to_string())
-        .collect::<Vec<_>>()
-        .join(", ")
-}
-
 /// Runs one training run (see the module docs) and writes its files.
 pub fn run(opts: RunOptions) -> Result<RunReport> {
-    let (rec, mut set, read_summary) = read_training_set(&opts)?;
-    let fps = training_fps(&opts, &rec);
+    let Loaded {
+        rec,
+        mut set,
+        read_summary,
+        fps,
+    } = read_training_set(&opts.data, opts.strict, opts.fps, &opts.filter)?;
     // The calibration is fitted on every frame, the held-out ones included (no labels are
     // involved): on WILDTRACK's training frames that beat fitting it on the 90 % trained on
     // (BENCHMARKS.md, "Training").
@@ -290,68 +286,6 @@ fn train_members(
         (out, None)
     };
     Ok((outcome, population))
-}
-
-/// Reads the training recording and turns it into the cleaned training set; what reading
-/// clipped and skipped, in words.
-/// The frame rate training assumes for `rec`: the one given, else the one its header
-/// declares, else [`REFERENCE_FPS`](crate::data::REFERENCE_FPS) (WILDTRACK's).
-fn training_fps(opts: &RunOptions, rec: &Recording) -> f64 {
-    opts.fps.or(rec.fps).unwrap_or(crate::data::REFERENCE_FPS)
-}
-
-fn read_training_set(opts: &RunOptions) -> Result<(Recording, TrainingSet, String)> {
-    let (rec, read) = read_recordings(&opts.data, opts.strict)?;
-    let mut read_summary = format!(
-        "{} boxes clipped at the image edge, {} broken boxes and {} broken lines skipped",
-        read.clipped_boxes, read.skipped_boxes, read.skipped_lines
-    );
-    if read.torn_lines > 0 {
-        read_summary += &format!(
-            ", {} torn last line(s) dropped (cut short by a crash)",
-            read.torn_lines
-        );
-    }
-    if read.skipped_boxes + read.skipped_lines > 0 {
-        tracing::warn!(
-            clipped = read.clipped_boxes,
-            skipped_boxes = read.skipped_boxes,
-            skipped_lines = read.skipped_lines,
-            first = read.first_problem.as_deref().unwrap_or(""),
-            "training data had broken boxes or lines (skipped; --strict aborts instead)"
-        );
-    }
-    let mut set = TrainingSet::from_recording(&rec.without_ids(), MIN_FRAMES).map_err(|e| {
-        Error::Training(format!(
-            "training data {}: {}",
-            data_label(&opts.data),
-            e.report()
-        ))
-    })?;
-    let filter = &opts.filter;
-    let removed =
-        prepare(&mut set, training_fps(opts, &rec), filter, MIN_FRAMES).map_err(|e| match e {
-            Error::Training(m) => {
-                Error::Training(format!("training data {}: {m}", data_label(&opts.data)))
-            }
-            e => e,
-        })?;
-    if !filter.is_off() {
-        tracing::info!(
-            before = removed.before,
-            small = removed.small,
-            stationary = removed.stationary,
-            kept = set.num_boxes(),
-            "filtered training boxes"
-        );
-    }
-    if set.num_boxes() == 0 {
-        return Err(Error::Training(format!(
-            "no training boxes left after --min-box-height {} / --drop-static-iou {}",
-            filter.min_height, filter.static_iou
-        )));
-    }
-    Ok((rec, set, read_summary))
 }
 
 /// The `--init` model's encoder (or ensemble: member `i` of a population starts from its
