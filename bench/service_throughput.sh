@@ -2,14 +2,21 @@
 # Service throughput rows of BENCHMARKS.md ("Throughput"): one 7-camera scene at 100 frames/s
 # and as fast as it goes, and 64 scenes x 10 frames/s, gRPC, width-64 random encoder, a fresh
 # server per run (peak RSS sampled by the load tester). Bounded: every run has --duration.
-# Usage: bash bench/service_throughput.sh     Env: OUT (/var/tmp/cv-svc), PORT (18391)
+# Usage: bash bench/service_throughput.sh     Env: OUT (/var/tmp/cv-svc), PORT (18391),
+#   MODEL (a WILDTRACK model file to serve instead of the random encoder)
 set -u
 cd "$(dirname "$0")/.." || exit 1
 export ORT_DYLIB_PATH=$PWD/.cache/onnxruntime/libonnxruntime.so.1.31.1
 OUT=${OUT:-/var/tmp/cv-svc}; mkdir -p $OUT; PORT=${PORT:-18391}; TARGET=http://127.0.0.1:$PORT
 B=target/release/crossview; L=target/release/crossview-loadtest
-$B simulate --preset wildtrack --frames 600 --seed 11 --out $OUT/rec.jsonl 2>/dev/null
-$B model init --scene-from $OUT/rec.jsonl --out $OUT/model.onnx --width 64 >/dev/null 2>&1
+if [[ -n ${MODEL:-} ]]; then
+  # A WILDTRACK model file (MODEL=models/wildtrack.onnx): the same simulated recording with its
+  # cameras renamed to the model's (bench/wildtrack_load.sh), served with that file.
+  CROSSVIEW_BIN=$B; source bench/wildtrack_load.sh; cp "$MODEL" $OUT/model.onnx
+else
+  $B simulate --preset wildtrack --frames 600 --seed 11 --out $OUT/rec.jsonl 2>/dev/null
+  $B model init --scene-from $OUT/rec.jsonl --out $OUT/model.onnx --width 64 >/dev/null 2>&1
+fi
 SCENE=$(head -1 $OUT/rec.jsonl | python3 -c 'import json,sys; print(json.load(sys.stdin)["scene"]["name"])')
 row() { python3 - "$1" "$2" <<'PY'
 import json, sys

@@ -1,6 +1,7 @@
 //! An ensemble model file, run through the real ONNX Runtime, computes the members' reference
 //! forward passes scaled by 1/√M and concatenated; it round-trips member by member; a file
-//! of one encoder is unchanged by the ensemble path; single-encoder readers refuse it clearly.
+//! of one encoder is unchanged by the ensemble path; single-encoder readers refuse it clearly;
+//! its leading block (what the live clock watch keeps) is the first member's.
 use crossview_core::{Encoder, Error};
 use crossview_model::{
     EncoderConfig, EncoderWeights, Ensemble, OnnxEncoder, read_ensemble, read_weights,
@@ -54,6 +55,9 @@ fn ensemble_file_runs_the_members_scaled_and_concatenated() {
     let (back, m2) = read_ensemble(&path).unwrap();
     assert_eq!(back, e);
     assert_eq!(m2, meta);
+    // The leading block is the first member's (what the live clock watch keeps), in the
+    // file as in memory.
+    assert_eq!((onnx.leading_width(), e.leading_width()), (24, 24));
 }
 
 #[test]
@@ -70,6 +74,9 @@ fn one_encoder_through_the_ensemble_path_is_the_plain_file() {
     );
     let (e, _) = read_ensemble(&a).unwrap();
     assert_eq!(e.members(), std::slice::from_ref(&w));
+    // One encoder is one block: its whole width leads.
+    let onnx = OnnxEncoder::load(&a).unwrap();
+    assert_eq!((onnx.leading_width(), onnx.dim()), (24, 24));
 }
 
 #[test]

@@ -301,6 +301,35 @@ async fn the_live_estimate_follows_a_drifting_camera() {
     server.shutdown().await.unwrap();
 }
 
+/// An ensemble model: the watch keeps only its first member's block of the embedding (one
+/// encoder's memory, whatever the ensemble's width) and still finds a camera 1 s late. The
+/// ensemble is `models/demo.onnx` followed by an untrained member, which only widens it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_ensemble_is_watched_by_its_leading_member() {
+    use crossview_core::Encoder;
+    let dir = tempfile::tempdir().unwrap();
+    let demo = repo_root().join("models/demo.onnx");
+    let (single, meta) = crossview_model::read_ensemble(&demo).unwrap();
+    let first = single.members()[0].clone();
+    let noise =
+        crossview_model::EncoderWeights::random(first.num_cameras, first.config, 7).unwrap();
+    let ensemble = crossview_model::Ensemble::new(vec![first, noise]).unwrap();
+    let path = dir.path().join("wide.onnx");
+    crossview_model::write_ensemble_onnx(&path, &ensemble, &meta).unwrap();
+    let onnx = crossview_model::OnnxEncoder::load(&path).unwrap();
+    assert_eq!(2 * onnx.leading_width(), onnx.dim());
+    let spec = crossview_serve::ModelSpec::parse(&format!("demo={}", path.display())).unwrap();
+    let server = start_with(vec![spec], |c| configure(c, None)).await;
+    run(&server, 0..FRAMES, |_| LAG).await;
+    let d = clock_of(&server, FRAMES).await;
+    let cams = d["clock"]["cameras"].as_array().unwrap();
+    for (c, cam) in cams.iter().enumerate() {
+        let want = if c == LAGGING { LAG as i64 } else { 0 };
+        assert_eq!(cam["offset_ids"].as_i64(), Some(want), "{d}");
+    }
+    server.shutdown().await.unwrap();
+}
+
 /// `--auto-align`: a camera 1 s late, undeclared, is corrected mid-stream once two estimates
 /// over full windows agree (one change, logged and counted); its batches for frames already
 /// published are refused as late while it catches up, and the identities after the change

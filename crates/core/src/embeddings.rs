@@ -76,6 +76,19 @@ impl FrameEmbeddings {
         FrameEmbeddings::new(matrix, &rows)
     }
 
+    /// The same frame with only the first `width` columns of every row (the embedding's leading
+    /// block, [`crate::Encoder::leading_width`]); unchanged, not copied, when `width` covers
+    /// every column.
+    pub fn leading(self, width: usize) -> FrameEmbeddings {
+        if width >= self.matrix.ncols() {
+            return self;
+        }
+        FrameEmbeddings {
+            matrix: self.matrix.slice(s![.., ..width]).to_owned(),
+            views: self.views,
+        }
+    }
+
     /// Number of views (reported or not).
     pub fn num_views(&self) -> usize {
         self.views.len()
@@ -125,6 +138,19 @@ mod tests {
             err.to_string().contains("2 embedding rows for 3 boxes"),
             "{err}"
         );
+    }
+
+    #[test]
+    fn the_leading_block_keeps_every_view_and_the_first_columns() {
+        let m = array![[1.0f32, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 9.0]];
+        let e = FrameEmbeddings::new(m, &[Some(2), None, Some(1)]).unwrap();
+        let lead = e.clone().leading(1);
+        assert_eq!(lead.dim(), 1);
+        assert_eq!(lead.view(0).unwrap(), array![[1.0f32], [4.0]]);
+        assert!(lead.view(1).is_none());
+        assert_eq!(lead.view(2).unwrap(), array![[7.0f32]]);
+        assert_eq!(e.clone().leading(3), e);
+        assert_eq!(e.clone().leading(99), e);
     }
 
     #[test]

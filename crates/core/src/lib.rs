@@ -32,4 +32,11 @@ pub trait Encoder: Send {
     fn embed(&mut self, boxes: &[[f32; 4]], cameras: &[i64]) -> Result<Array2<f32>>;
     /// Embedding width G.
     fn dim(&self) -> usize;
+    /// Width of the embedding's leading block that describes the geometry on its own: the
+    /// first member's, for an ensemble of encoders whose embeddings are concatenated (the best
+    /// by the trainer's label-free key), else the whole width. What keeps many frames of
+    /// embeddings (the live clock watch) keeps only these columns.
+    fn leading_width(&self) -> usize {
+        self.dim()
+    }
 }

@@ -89,6 +89,9 @@ impl Encoder for Ensemble {
     fn dim(&self) -> usize {
         self.width()
     }
+    fn leading_width(&self) -> usize {
+        self.members[0].width()
+    }
 }
 
 #[cfg(test)]

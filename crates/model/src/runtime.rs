@@ -99,6 +99,9 @@ pub struct OnnxEncoder {
     session: Session,
     metadata: ModelMetadata,
     dim: usize,
+    /// [`Encoder::leading_width`]: the first member's width when the graph is a crossview
+    /// ensemble, else `dim`.
+    leading: usize,
     source: String,
 }
 
@@ -155,10 +158,18 @@ impl OnnxEncoder {
             threads,
             "loaded encoder"
         );
+        // A crossview ensemble's members are readable from its graph; any other file that
+        // keeps the contract is one block.
+        let leading = crate::export::read_ensemble_from_bytes(name, bytes)
+            .ok()
+            .map(|(e, _)| e.members()[0].width())
+            .filter(|&w| w > 0 && w <= dim)
+            .unwrap_or(dim);
         Ok(OnnxEncoder {
             session,
             metadata,
             dim,
+            leading,
             source: name.to_string(),
         })
     }
@@ -216,6 +227,10 @@ impl Encoder for OnnxEncoder {
 
     fn dim(&self) -> usize {
         self.dim
+    }
+
+    fn leading_width(&self) -> usize {
+        self.leading
     }
 }
 

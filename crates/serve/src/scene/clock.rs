@@ -2,8 +2,10 @@
 //! computed anyway ([`crossview_core::offsets`]), off the hot path.
 //!
 //! After publishing a frame, the worker moves its embeddings to the scene's own watch thread
-//! ([`ClockWatch::observe`]: no copy, no lock, never blocks), which keeps the last `window`
-//! frames per camera (a few kilobytes per frame) and, once per `interval`, estimates every
+//! ([`ClockWatch::observe`]: no copy, no lock, never blocks; for an ensemble only its first
+//! member's columns, [`crossview_core::Encoder::leading_width`], so the window costs what one
+//! encoder's would), which keeps the last `window` frames per camera (a few kilobytes per
+//! frame) and, once per `interval`, estimates every
 //! camera's offset from them if they changed: the worker never waits for an estimate and the
 //! work is bounded by one estimate per interval. The thread publishes the estimate in the
 //! scene description, as the `crossview_camera_offset_frames{scene,camera}` and
@@ -51,7 +53,8 @@ const MIN_POLL: Duration = Duration::from_millis(50);
 
 /// Frames queued for the watch thread at most (it takes them in microseconds, except while
 /// estimating: ~0.6 s for 7 cameras; beyond, frames are left out of the window, never waited
-/// for). Bounds its memory: 512 frames of 7 cameras × 35 boxes × 64 floats is 32 MiB.
+/// for). Bounds its memory: 512 frames of 7 cameras × 35 boxes × 64 floats is 32 MiB (the
+/// worker hands over only the model's leading block, an ensemble's first member).
 const QUEUE: usize = 512;
 
 /// A frame for the watch thread: the worker's epoch (bumped on a model swap), its id and its

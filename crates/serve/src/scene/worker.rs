@@ -89,9 +89,14 @@ impl Worker {
                             result: r,
                             views,
                         })));
-                    // After publishing: the clock watch's copy is off the latency path.
-                    if let (Some(c), Some(embeddings)) = (&mut self.clock, embeddings) {
-                        c.observe(e.frame.frame_id, embeddings);
+                    // After publishing: the clock watch's copy is off the latency path. It
+                    // keeps the leading block only (an ensemble's first member): a window of
+                    // frames at the full width of an ensemble costs its width in memory.
+                    if let (Some(c), Some(embeddings), Some(m)) =
+                        (&mut self.clock, embeddings, &self.model)
+                    {
+                        let width = m.encoder.leading_width();
+                        c.observe(e.frame.frame_id, embeddings.leading(width));
                     }
                 }
                 Job::Unary {
