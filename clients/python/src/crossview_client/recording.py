@@ -26,6 +26,9 @@ class Recording:
     cameras: tuple[Camera, ...]
     _lines: Iterator[tuple[int, str, bool]] = field(repr=False)
     torn_lines: int = 0
+    #: The frame rate the header declares (``"fps"``, frames per second), ``None`` if none:
+    #: e.g. ``client.stream_recording(path, fps=rec.fps)`` replays it at its own pace.
+    fps: float | None = None
 
     def batches(self, scene: str | None = None) -> Iterator[Batch]:
         """The batch lines as :class:`Batch` values for ``scene`` (default: the header's)."""
@@ -58,21 +61,32 @@ def _lines(f: "os.PathLike[str] | str") -> Iterator[tuple[int, str, bool]]:
 
 
 def open_recording(path: "os.PathLike[str] | str") -> Recording:
-    """Opens a SPEC §7 recording and reads its header line ``{"scene": {...}}``."""
+    """Opens a SPEC §7 recording and reads its header line ``{"scene": {...}}`` (with its
+    optional ``"fps"``)."""
     lines = _lines(path)
     try:
         _, first, _ = next(lines)
     except StopIteration:
         raise ValueError(f"{path}: empty recording (no scene header)") from None
     try:
-        header = json.loads(first)["scene"]
+        top = json.loads(first)
+        header = top["scene"]
         cameras = tuple(
             Camera(str(c["name"]), int(c["width"]), int(c["height"])) for c in header["cameras"]
         )
         name = str(header["name"])
+        fps = top.get("fps")
+        if fps is not None and not (isinstance(fps, (int, float)) and 0 < fps <= 1000):
+            raise ValueError(f"fps must be a frame rate in (0, 1000], got {fps!r}")
     except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
         raise ValueError(f"{path}:1: not a scene header: {e!r}") from e
-    return Recording(path=os.fspath(path), scene=name, cameras=cameras, _lines=lines)
+    return Recording(
+        path=os.fspath(path),
+        scene=name,
+        cameras=cameras,
+        _lines=lines,
+        fps=None if fps is None else float(fps),
+    )
 
 
 @dataclass
