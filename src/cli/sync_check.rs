@@ -141,7 +141,8 @@ pub fn run(args: SyncCheckArgs) -> anyhow::Result<()> {
 }
 
 /// Every camera's offset in `recording` (its ids shifted by `lags` frame steps first), with the
-/// frame step: the embeddings from `encoder`, the pairs profiled on `workers` threads.
+/// frame step: the embeddings from `encoder` (their leading block, an ensemble's first member,
+/// as the server's live watch), the pairs profiled on `workers` threads.
 pub(crate) fn estimate_recording(
     encoder: &mut crossview_model::OnnxEncoder,
     recording: &Recording,
@@ -243,7 +244,9 @@ fn embed_series(
             skipped += 1;
             continue;
         };
-        let embeddings = embed_frame(encoder, scene, frame)?;
+        // The leading block (an ensemble's first member), as the server's live watch keeps.
+        let width = encoder.leading_width();
+        let embeddings = embed_frame(encoder, scene, frame)?.leading(width);
         for (c, s) in series.iter_mut().enumerate() {
             if let Some(view) = embeddings.view(c) {
                 let shifted = lags[c].checked_mul(step).and_then(|d| id.checked_add(d));

@@ -1,8 +1,9 @@
 //! `crossview sync-check` as a user runs it: the real binary, the real ONNX Runtime, the
 //! shipped `models/demo.onnx` and a simulated `square4` recording. In sync, every camera is
 //! at 0; with one camera's ids shifted (`--simulate-lag`), that camera and only it is found at
-//! the shift; a recording whose header declares the shift (`@+N`) is back in sync; bad
-//! arguments are refused with a message.
+//! the shift; a recording whose header declares the shift (`@+N`) is back in sync; an ensemble
+//! is estimated by its leading member alone (as the server's live watch); bad arguments are
+//! refused with a message.
 use std::process::Command;
 
 use crossview_testing::{repo_root, run_crossview};
@@ -24,7 +25,10 @@ fn simulate(dir: &std::path::Path) -> String {
 }
 
 fn check(rec: &str, extra: &[&str]) -> Value {
-    let model = repo_root().join("models/demo.onnx");
+    check_with(&repo_root().join("models/demo.onnx"), rec, extra)
+}
+
+fn check_with(model: &std::path::Path, rec: &str, extra: &[&str]) -> Value {
     let mut args = vec![
         "sync-check",
         "--model",
@@ -141,5 +145,39 @@ fn sync_check_refuses_bad_arguments_with_a_message() {
         assert!(!out.status.success(), "{extra:?} was accepted");
         assert!(stderr.contains(says), "{extra:?}: {stderr}");
         assert!(!stderr.contains("panicked"), "{extra:?}: {stderr}");
+    }
+}
+
+#[test]
+fn an_ensemble_is_estimated_by_its_leading_member_alone() {
+    // `models/demo.onnx` followed by an untrained member: the estimate is demo's own (the
+    // leading block is demo's embedding over √2, and offsets do not depend on the scale).
+    let dir = tempfile::tempdir().unwrap();
+    let rec = simulate(dir.path());
+    let demo = repo_root().join("models/demo.onnx");
+    let (single, meta) = crossview_model::read_ensemble(&demo).unwrap();
+    let first = single.members()[0].clone();
+    let noise =
+        crossview_model::EncoderWeights::random(first.num_cameras, first.config, 7).unwrap();
+    let wide = dir.path().join("wide.onnx");
+    let ensemble = crossview_model::Ensemble::new(vec![first, noise]).unwrap();
+    crossview_model::write_ensemble_onnx(&wide, &ensemble, &meta).unwrap();
+    let lag = ["--simulate-lag", "cam1:-3"];
+    let (alone, both) = (check_with(&demo, &rec, &lag), check_with(&wide, &rec, &lag));
+    assert_eq!(
+        offsets(&both),
+        vec![Some(0), Some(-3), Some(0), Some(0)],
+        "{both}"
+    );
+    for (a, b) in alone["cameras"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(both["cameras"].as_array().unwrap())
+    {
+        for key in ["refined", "confidence"] {
+            let (x, y) = (a[key].as_f64().unwrap(), b[key].as_f64().unwrap());
+            assert!((x - y).abs() < 1e-3, "{key}: {a} vs {b}");
+        }
     }
 }
