@@ -1,4 +1,4 @@
-//! Association cost of one WILDTRACK-sized frame (7 cameras × 35 boxes, 768- and 64-dim
+//! Association cost of one WILDTRACK-sized frame (7 cameras × 35 boxes, 768-, 384- and 64-dim
 //! embeddings): the 21 pairwise matchings, the identity step, the whole `associate_frame`, and
 //! the service's path (`frame_identities`).
 use std::hint::black_box;
@@ -161,6 +161,8 @@ fn calibration(pairs: &[ViewPair]) -> Calibration {
 
 fn bench_wall(c: &mut Criterion<WallTime>) {
     bench(c, "wildtrack_frame_7x35x768", 768);
+    // The default WILDTRACK model's width (six members of 64).
+    bench(c, "wildtrack_frame_7x35x384", 384);
     bench(c, "wildtrack_frame_7x35x64", 64);
 }
 
