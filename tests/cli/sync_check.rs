@@ -6,7 +6,7 @@
 //! refused with a message.
 use std::process::Command;
 
-use crossview_testing::{repo_root, run_crossview};
+use crossview_testing::{demo_with_untrained_member, repo_root, run_crossview};
 use serde_json::Value;
 
 const BIN: &str = env!("CARGO_BIN_EXE_crossview");
@@ -150,18 +150,12 @@ fn sync_check_refuses_bad_arguments_with_a_message() {
 
 #[test]
 fn an_ensemble_is_estimated_by_its_leading_member_alone() {
-    // `models/demo.onnx` followed by an untrained member: the estimate is demo's own (the
-    // leading block is demo's embedding over √2, and offsets do not depend on the scale).
+    // The estimate is demo's own (the ensemble's leading block is demo's embedding over √2,
+    // and offsets do not depend on the scale).
     let dir = tempfile::tempdir().unwrap();
     let rec = simulate(dir.path());
     let demo = repo_root().join("models/demo.onnx");
-    let (single, meta) = crossview_model::read_ensemble(&demo).unwrap();
-    let first = single.members()[0].clone();
-    let noise =
-        crossview_model::EncoderWeights::random(first.num_cameras, first.config, 7).unwrap();
-    let wide = dir.path().join("wide.onnx");
-    let ensemble = crossview_model::Ensemble::new(vec![first, noise]).unwrap();
-    crossview_model::write_ensemble_onnx(&wide, &ensemble, &meta).unwrap();
+    let wide = demo_with_untrained_member(dir.path(), "wide");
     let lag = ["--simulate-lag", "cam1:-3"];
     let (alone, both) = (check_with(&demo, &rec, &lag), check_with(&wide, &rec, &lag));
     assert_eq!(

@@ -10,6 +10,7 @@ use crossview_core::{CameraSpec, Detection, Frame, SceneSpec};
 use crossview_data::Recording;
 use crossview_data::recording::write_recording;
 use crossview_model::{ModelMetadata, read_ensemble};
+use crossview_testing::run_crossview;
 
 /// A small recording of 3 people walking past `cameras` cameras (ids when `ids`).
 pub(crate) fn recording(cameras: usize, frames: usize, ids: bool) -> Recording {
@@ -323,16 +324,12 @@ fn model_calibrate_thins_a_recording_at_the_rate_its_header_declares() {
     let dir = tempfile::tempdir().unwrap();
     let plain = dir.path().join("plain.jsonl");
     let declared = dir.path().join("declared.jsonl");
-    succeeded(
-        Command::new(env!("CARGO_BIN_EXE_crossview"))
-            .args([
-                "simulate", "--preset", "square4", "--frames", "300", "--no-ids",
-            ])
-            .arg("--out")
-            .arg(&declared)
-            .output()
-            .unwrap(),
-    );
+    let path = |p: &Path| p.to_str().unwrap().to_string();
+    let bin = env!("CARGO_BIN_EXE_crossview");
+    let sim = [
+        "simulate", "--preset", "square4", "--frames", "300", "--no-ids",
+    ];
+    run_crossview(bin, &[&sim[..], &["--out", &path(&declared)]].concat(), &[]);
     let mut rec = crossview_data::read_recording(&declared).unwrap();
     assert_eq!(rec.fps, Some(10.0), "the simulator declares its rate");
     rec.fps = None;
@@ -341,18 +338,18 @@ fn model_calibrate_thins_a_recording_at_the_rate_its_header_declares() {
     train_ok(&plain, &model, &[TINY, &["--population", "1"]].concat());
     let calibrate = |data: &Path, extra: &[&str], name: &str| {
         let out = dir.path().join(name);
-        succeeded(
-            Command::new(env!("CARGO_BIN_EXE_crossview"))
-                .args(["model", "calibrate", "--model"])
-                .arg(&model)
-                .arg("--data")
-                .arg(data)
-                .args(extra)
-                .arg("--out")
-                .arg(&out)
-                .output()
-                .unwrap(),
-        );
+        let (model, data, out_s) = (path(&model), path(data), path(&out));
+        let args = [
+            "model",
+            "calibrate",
+            "--model",
+            &model,
+            "--data",
+            &data,
+            "--out",
+            &out_s,
+        ];
+        run_crossview(bin, &[&args[..], extra].concat(), &[]);
         read_ensemble(&out).unwrap().1.calibration.unwrap()
     };
     let by_header = calibrate(&declared, &[], "header.onnx");

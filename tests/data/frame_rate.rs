@@ -138,19 +138,11 @@ fn the_simulator_declares_its_rate() {
 
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("sim.jsonl");
-    let st = std::process::Command::new(env!("CARGO_BIN_EXE_crossview"))
-        .args([
-            "simulate", "--preset", "square4", "--frames", "3", "--fps", "12.5",
-        ])
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
-    );
+    let out_s = out.to_str().unwrap();
+    let args = [
+        "simulate", "--preset", "square4", "--frames", "3", "--fps", "12.5", "--out", out_s,
+    ];
+    crossview_testing::run_crossview(env!("CARGO_BIN_EXE_crossview"), &args, &[]);
     assert_eq!(header_json(&out)["fps"], 12.5);
     assert_eq!(read_recording(&out).unwrap().fps, Some(12.5));
 }

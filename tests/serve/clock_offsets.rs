@@ -308,14 +308,7 @@ async fn the_live_estimate_follows_a_drifting_camera() {
 async fn an_ensemble_is_watched_by_its_leading_member() {
     use crossview_core::Encoder;
     let dir = tempfile::tempdir().unwrap();
-    let demo = repo_root().join("models/demo.onnx");
-    let (single, meta) = crossview_model::read_ensemble(&demo).unwrap();
-    let first = single.members()[0].clone();
-    let noise =
-        crossview_model::EncoderWeights::random(first.num_cameras, first.config, 7).unwrap();
-    let ensemble = crossview_model::Ensemble::new(vec![first, noise]).unwrap();
-    let path = dir.path().join("wide.onnx");
-    crossview_model::write_ensemble_onnx(&path, &ensemble, &meta).unwrap();
+    let path = demo_with_untrained_member(dir.path(), "wide");
     let onnx = crossview_model::OnnxEncoder::load(&path).unwrap();
     assert_eq!(2 * onnx.leading_width(), onnx.dim());
     let spec = crossview_serve::ModelSpec::parse(&format!("demo={}", path.display())).unwrap();

@@ -345,6 +345,19 @@ pub fn demo_model() -> Vec<ModelSpec> {
     vec![ModelSpec::parse(path.to_str().unwrap()).unwrap()]
 }
 
+/// `models/demo.onnx` followed by an untrained member, as one ensemble file `dir/<stem>.onnx`
+/// (scene `demo`): its leading block is demo's own encoder, the rest only widens it.
+pub fn demo_with_untrained_member(dir: &Path, stem: &str) -> PathBuf {
+    let (single, meta) = crossview_model::read_ensemble(repo_root().join("models/demo.onnx"))
+        .expect("read models/demo.onnx");
+    let first = single.members()[0].clone();
+    let noise = EncoderWeights::random(first.num_cameras, first.config, 7).expect("random weights");
+    let ensemble = crossview_model::Ensemble::new(vec![first, noise]).expect("one ensemble");
+    let path = dir.join(format!("{stem}.onnx"));
+    crossview_model::write_ensemble_onnx(&path, &ensemble, &meta).expect("export ONNX");
+    path
+}
+
 /// The repository root (where `models/`, `scenes/`, `proto/` and `.cache/` live).
 pub fn repo_root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
