@@ -132,6 +132,16 @@ pub(crate) fn read_ensemble_from_bytes(
 ) -> Result<(Ensemble, ModelMetadata)> {
     let model = decode_model(source_name, bytes)?;
     let meta = model_metadata(source_name, &model)?;
+    let ensemble = ensemble_from_model(source_name, &model, &meta)?;
+    Ok((ensemble, meta))
+}
+
+/// The encoders of a decoded model file whose metadata is `meta` (see [`read_ensemble`]).
+pub(crate) fn ensemble_from_model(
+    source_name: &str,
+    model: &ModelProto,
+    meta: &ModelMetadata,
+) -> Result<Ensemble> {
     let graph = model.graph.as_ref().expect("decode_model checks the graph");
     let inits: BTreeMap<&str, &TensorProto> = graph
         .initializer
@@ -169,8 +179,7 @@ pub(crate) fn read_ensemble_from_bytes(
             ));
         }
     }
-    let ensemble = Ensemble::new(members).map_err(|e| Error::model(source_name, e.to_string()))?;
-    Ok((ensemble, meta))
+    Ensemble::new(members).map_err(|e| Error::model(source_name, e.to_string()))
 }
 
 /// Reads a model file, mapping every I/O problem to [`Error::Model`] naming the path.

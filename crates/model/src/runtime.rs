@@ -160,9 +160,9 @@ impl OnnxEncoder {
         );
         // A crossview ensemble's members are readable from its graph; any other file that
         // keeps the contract is one block.
-        let leading = crate::export::read_ensemble_from_bytes(name, bytes)
+        let leading = crate::export::ensemble_from_model(name, &model, &metadata)
             .ok()
-            .map(|(e, _)| e.members()[0].width())
+            .map(|e| e.members()[0].width())
             .filter(|&w| w > 0 && w <= dim)
             .unwrap_or(dim);
         Ok(OnnxEncoder {

@@ -126,12 +126,12 @@ pub fn run(opts: RunOptions) -> Result<RunReport> {
     // The run's own shape (an `--init` model's overrides the requested one).
     let opts = RunOptions {
         config: cfg.clone(),
-        fps: Some(fps),
         ..opts
     };
     let mut meta = metadata(
         &rec.scene.cameras,
         &opts,
+        fps,
         &outcome,
         &data_name,
         &rec.scene.name,
@@ -358,11 +358,12 @@ fn write_curve_and_history(
     Ok(curve)
 }
 
-/// The model file's metadata (SPEC §8): cameras, thresholds, and how the run trained and chose
-/// its epoch.
+/// The model file's metadata (SPEC §8): cameras, thresholds, and how the run trained (on a
+/// recording of `fps` frames per second) and chose its epoch.
 fn metadata(
     cameras: &[CameraSpec],
     opts: &RunOptions,
+    fps: f64,
     out: &TrainOutcome,
     data_name: &str,
     scene: &str,
@@ -396,11 +397,7 @@ fn metadata(
     );
     extra.insert(
         KEY_TRAIN_FPS.into(),
-        {
-            let fps = opts.fps.unwrap_or(crate::data::REFERENCE_FPS);
-            serde_json::json!({"fps": fps, "frame_step": frame_step(fps).unwrap_or(1)})
-        }
-        .to_string(),
+        serde_json::json!({"fps": fps, "frame_step": frame_step(fps).unwrap_or(1)}).to_string(),
     );
     extra.insert(
         "crossview.selection".into(),

@@ -72,8 +72,8 @@ pub fn read_recordings(paths: &[impl AsRef<Path>], strict: bool) -> Result<(Reco
     let files = recording_files(paths)?;
     let several = files.len() > 1 || paths.iter().any(|p| p.as_ref().is_dir());
     let mut stats = ReadStats::default();
-    let mut first: Option<(SceneSpec, String)> = None;
-    let mut fps: Option<Option<f64>> = None;
+    // The first file's scene and frame rate, which every other file must repeat, and its name.
+    let mut first: Option<(SceneSpec, Option<f64>, String)> = None;
     let mut appearance = AppearanceLen::default();
     let mut assembler: Option<FrameAssembler> = None;
     let mut last_problem: Option<Error> = None;
@@ -104,8 +104,8 @@ pub fn read_recordings(paths: &[impl AsRef<Path>], strict: bool) -> Result<(Reco
             reader = reader.lenient();
         }
         match &first {
-            None => first = Some((reader.scene().clone(), name.clone())),
-            Some((scene, first_name)) if !same_cameras(scene, reader.scene()) => {
+            None => first = Some((reader.scene().clone(), reader.fps(), name.clone())),
+            Some((scene, _, first_name)) if !same_cameras(scene, reader.scene()) => {
                 return Err(Error::Format {
                     source_name: name,
                     line: 1,
@@ -118,20 +118,15 @@ pub fn read_recordings(paths: &[impl AsRef<Path>], strict: bool) -> Result<(Reco
                     ),
                 });
             }
-            Some(_) => {}
-        }
-        match fps {
-            None => fps = Some(reader.fps()),
-            Some(rate) if rate != reader.fps() => {
+            Some((_, fps, first_name)) if *fps != reader.fps() => {
                 let shown = |r: Option<f64>| r.map_or("none".to_string(), |r| r.to_string());
                 return Err(Error::Format {
                     source_name: name,
                     line: 1,
                     message: format!(
-                        "frame rate {} differs from {} of {}: the files of one recording must declare the same fps",
+                        "frame rate {} differs from {} of {first_name}: the files of one recording must declare the same fps",
                         shown(reader.fps()),
-                        shown(rate),
-                        first.as_ref().map_or("", |f| f.1.as_str())
+                        shown(*fps),
                     ),
                 });
             }
@@ -180,7 +175,7 @@ pub fn read_recordings(paths: &[impl AsRef<Path>], strict: bool) -> Result<(Reco
             stats.first_problem = s.first_problem;
         }
     }
-    let (Some((scene, _)), Some(assembler)) = (first, assembler) else {
+    let (Some((scene, fps, _)), Some(assembler)) = (first, assembler) else {
         return Err(last_problem.unwrap_or_else(|| {
             RecordingReader::<&[u8]>::empty_error(
                 files
@@ -201,7 +196,7 @@ pub fn read_recordings(paths: &[impl AsRef<Path>], strict: bool) -> Result<(Reco
         Recording {
             frames: assembler.finish(),
             scene,
-            fps: fps.flatten(),
+            fps,
         },
         stats,
     ))
