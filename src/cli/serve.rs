@@ -9,8 +9,8 @@ use crossview_core::tracking::TrackerConfig;
 use crossview_serve::config::ClockWatchConfig;
 use crossview_serve::config::SceneDecl;
 use crossview_serve::{
-    ConnectionLimits, KafkaConfig, Limits, ModelSpec, RecordConfig, ServeConfig, TlsConfig,
-    ValueFormat,
+    ConnectionLimits, GroupProtocol, KafkaConfig, Limits, ModelSpec, RecordConfig, ServeConfig,
+    TlsConfig, ValueFormat,
 };
 
 /// Serve association over gRPC and HTTP JSON on one port.
@@ -204,6 +204,20 @@ pub struct KafkaArgs {
     /// Kafka consumer group the replicas share (each owns whole scenes).
     #[arg(long, env = "CROSSVIEW_KAFKA_GROUP")]
     pub kafka_group: Option<String>,
+    /// The group's rebalance protocol: `classic` (members assign, cooperative-sticky; session
+    /// 6 s and heartbeat 500 ms set here) or `consumer` (KIP-848: the broker assigns; session
+    /// and heartbeat are the broker's or the group's settings). docs/kafka.md "Rebalances".
+    #[arg(
+        long,
+        env = "CROSSVIEW_KAFKA_GROUP_PROTOCOL",
+        default_value = "classic"
+    )]
+    pub kafka_group_protocol: GroupProtocol,
+    /// Static membership (`group.instance.id`): a name unique to this replica that stays the
+    /// same across its restarts (a StatefulSet's pod name); a replica back within the session
+    /// takes its scenes back without a rebalance.
+    #[arg(long, env = "CROSSVIEW_KAFKA_INSTANCE_ID")]
+    pub kafka_instance_id: Option<String>,
     /// This replica's `producer.id` in its results (default: host name and process id).
     #[arg(long, env = "CROSSVIEW_KAFKA_PRODUCER_ID")]
     pub kafka_producer_id: Option<String>,
@@ -265,6 +279,11 @@ impl KafkaArgs {
             k.producer_id = id.clone();
         }
         k.dead_letter_topic = self.kafka_dead_letter_topic.clone();
+        k.group_protocol = self.kafka_group_protocol;
+        k.instance_id = self
+            .kafka_instance_id
+            .clone()
+            .filter(|i| !i.trim().is_empty());
         k.input_format = self.kafka_input_format;
         k.output_format = self.kafka_output_format;
         let named = [

@@ -74,6 +74,12 @@ impl Metrics {
             .increment(1);
     }
 
+    fn set(&self, name: &'static str, labels: &[(&'static str, &str)], v: f64) {
+        self.recorder
+            .register_gauge(&key(name, labels), &META)
+            .set(v);
+    }
+
     fn observe(&self, name: &'static str, labels: &[(&'static str, &str)], d: Duration) {
         self.recorder
             .register_histogram(&key(name, labels), &META)
@@ -173,6 +179,38 @@ impl Metrics {
     pub fn frame(&self, scene: &str, complete: bool) {
         let c = if complete { "complete" } else { "partial" };
         self.inc("crossview_frames_total", &[("scene", scene), ("state", c)]);
+    }
+
+    /// One frame published partial, by `cause`: `camera_missing` (the clock moved on past its
+    /// timeout without it), `idle` (Kafka: its partition caught up and quiet that long),
+    /// `frame_cap` (--max-pending-frames), `restart`, `shutdown`.
+    pub(crate) fn partial(&self, scene: &str, cause: &'static str) {
+        self.inc(
+            "crossview_frames_partial_total",
+            &[("scene", scene), ("cause", cause)],
+        );
+    }
+
+    /// A Kafka input partition's stream time (ms since the Unix epoch) and how far it trails
+    /// the wall clock.
+    pub(crate) fn kafka_stream_time(&self, topic: &str, partition: i32, ms: u64, now_ms: u64) {
+        let p = partition.to_string();
+        let labels = [("topic", topic), ("partition", p.as_str())];
+        self.set(
+            "crossview_kafka_stream_time_seconds",
+            &labels,
+            ms as f64 / 1e3,
+        );
+        self.set(
+            "crossview_kafka_stream_behind_seconds",
+            &labels,
+            now_ms.saturating_sub(ms) as f64 / 1e3,
+        );
+    }
+
+    /// A Kafka record without a usable timestamp: its arrival time stands in for it.
+    pub(crate) fn kafka_untimed(&self) {
+        self.inc("crossview_kafka_records_untimed_total", &[]);
     }
 
     /// Frames currently waiting in the synchronizer.

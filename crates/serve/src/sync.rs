@@ -63,6 +63,9 @@ pub(crate) struct Emitted {
     pub frame: Frame,
     /// When its first batch arrived (for latency).
     pub first_seen: Instant,
+    /// How long it waited by the clock its timeout is measured on (from its first batch to
+    /// the clock at which it left; zero when flushed).
+    pub waited: Duration,
     /// Why it left now.
     pub reason: EmitReason,
 }
@@ -78,6 +81,8 @@ impl Emitted {
 struct Pending {
     frame: Frame,
     first_seen: Instant,
+    /// The clock when its first batch came: its timeout runs from here.
+    due_from: Instant,
     reported: usize,
 }
 
@@ -170,7 +175,7 @@ impl Synchronizer {
     fn reanchor(&mut self) -> Vec<Emitted> {
         let mut out = Vec::with_capacity(self.pending.len());
         while !self.pending.is_empty() {
-            out.push(self.pop_first(EmitReason::Restart));
+            out.push(self.pop_first(EmitReason::Restart, None));
         }
         self.last_emitted = None;
         self.restarts += 1;
@@ -208,10 +213,10 @@ impl Synchronizer {
     }
 
     /// Accepts camera `camera`'s batch for `frame_id` and returns the frames that leave because
-    /// of it, or why it was rejected, with two clocks: a new frame is stamped `arrived`, and
-    /// frames leave by timeout as of `now`, which may lag `arrived` (Kafka mode: the time up
-    /// to which the input is known to be read, so a frame never times out while its other
-    /// cameras may still be unread). `camera` must be `< num_cameras`.
+    /// of it, or why it was rejected, with two clocks: a new frame is stamped `arrived` (wall
+    /// time, for latency), and timeouts are measured on the clock `now`, which need not be
+    /// the wall clock (Kafka mode: the stream time of the scene's partition, so a frame never
+    /// times out while delivery is held). `camera` must be `< num_cameras`.
     pub fn push_at(
         &mut self,
         camera: usize,
@@ -236,6 +241,7 @@ impl Synchronizer {
         let entry = self.pending.entry(frame_id).or_insert_with(|| Pending {
             frame: Frame::new(frame_id, n),
             first_seen: arrived,
+            due_from: now,
             reported: 0,
         });
         if entry.frame.views[camera].is_some() {
@@ -256,7 +262,7 @@ impl Synchronizer {
         let expired = self
             .pending
             .iter()
-            .filter(|(_, p)| now.saturating_duration_since(p.first_seen) >= self.timeout)
+            .filter(|(_, p)| now.saturating_duration_since(p.due_from) >= self.timeout)
             .map(|(&id, _)| id)
             .next_back();
         if let Some(limit) = expired {
@@ -264,7 +270,7 @@ impl Synchronizer {
                 if id > limit {
                     break;
                 }
-                out.push(self.pop_first(EmitReason::Timeout));
+                out.push(self.pop_first(EmitReason::Timeout, Some(now)));
             }
         }
         while let Some((_, head)) = self.pending.first_key_value() {
@@ -275,16 +281,16 @@ impl Synchronizer {
             } else {
                 break;
             };
-            out.push(self.pop_first(reason));
+            out.push(self.pop_first(reason, Some(now)));
         }
         out
     }
 
-    /// The earliest time at which [`poll`](Self::poll) may emit something, if anything waits.
+    /// The earliest clock at which [`poll`](Self::poll) may emit something, if anything waits.
     pub(crate) fn next_deadline(&self) -> Option<Instant> {
         self.pending
             .values()
-            .map(|p| p.first_seen + self.timeout)
+            .map(|p| p.due_from + self.timeout)
             .min()
     }
 
@@ -292,7 +298,7 @@ impl Synchronizer {
     pub fn flush(&mut self) -> Vec<Emitted> {
         let mut out = Vec::with_capacity(self.pending.len());
         while !self.pending.is_empty() {
-            out.push(self.pop_first(EmitReason::Flush));
+            out.push(self.pop_first(EmitReason::Flush, None));
         }
         out
     }
@@ -309,12 +315,14 @@ impl Synchronizer {
         n
     }
 
-    fn pop_first(&mut self, reason: EmitReason) -> Emitted {
+    /// The oldest pending frame, leaving for `reason` at clock `now` (`None`: flushed).
+    fn pop_first(&mut self, reason: EmitReason, now: Option<Instant>) -> Emitted {
         let (id, p) = self.pending.pop_first().expect("caller checked non-empty");
         self.last_emitted = Some(id);
         Emitted {
             frame: p.frame,
             first_seen: p.first_seen,
+            waited: now.map_or(Duration::ZERO, |n| n.saturating_duration_since(p.due_from)),
             reason,
         }
     }
@@ -377,33 +385,35 @@ mod tests {
         assert_eq!(s.next_deadline(), None);
     }
 
-    /// A frame stamped at its arrival times out only once the second clock passes its
-    /// deadline, however late that clock runs; complete frames still leave at once.
+    /// Timeouts run on the second clock, from its reading at the frame's first batch, however
+    /// far wall time moves meanwhile; the arrival stamp is kept for latency, the wait on the
+    /// second clock is reported; complete frames still leave at once.
     #[test]
-    fn a_lagging_clock_times_out_by_arrival() {
+    fn timeouts_run_on_the_clock_they_are_given() {
         let t0 = Instant::now();
         let ms = Duration::from_millis;
+        // The second clock (a stream's time) reads s0 while wall time reads t0 + ...
+        let s0 = t0 + Duration::from_secs(3600);
         let mut s = Synchronizer::new(2, T, 16);
-        // Arrives at t0 + 300 while the clock still reads t0.
-        assert!(s.push_at(0, 5, det(), t0 + ms(300), t0).unwrap().is_empty());
-        assert_eq!(s.next_deadline(), Some(t0 + ms(300) + T));
+        assert!(s.push_at(0, 5, det(), t0 + ms(300), s0).unwrap().is_empty());
+        assert_eq!(s.next_deadline(), Some(s0 + T));
         assert!(
-            s.poll(t0 + ms(499)).is_empty(),
-            "the clock has not reached it"
+            s.poll(s0 + T - ms(1)).is_empty(),
+            "the clock has not moved on by the timeout"
         );
-        // Another frame arrives while the clock lags behind both.
+        // Another frame starts while the clock has moved 100 ms.
         assert!(
-            s.push_at(0, 6, det(), t0 + ms(400), t0 + ms(100))
+            s.push_at(0, 6, det(), t0 + ms(400), s0 + ms(100))
                 .unwrap()
                 .is_empty()
         );
-        assert_eq!(
-            ids(&s.push_at(1, 6, det(), t0 + ms(450), t0 + ms(100)).unwrap()),
-            Vec::<u64>::new()
-        );
-        let out = s.poll(t0 + ms(500));
+        let out = s.push_at(1, 6, det(), t0 + ms(2400), s0 + ms(150)).unwrap();
+        assert!(out.is_empty(), "6 is complete but 5, older, still waits");
+        let out = s.poll(s0 + T);
         assert_eq!(ids(&out), vec![5, 6], "5 times out, complete 6 follows");
         assert_eq!(out[0].first_seen, t0 + ms(300));
+        assert_eq!(out[0].waited, T);
+        assert_eq!(out[1].waited, T - ms(100));
     }
 
     #[test]

@@ -15,19 +15,23 @@ use super::*;
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn one_replica_publishes_every_batch_skips_malformed_and_resumes_after_restart() {
     let Some(Setup {
-        broker, bin, lines, ..
+        broker,
+        topics,
+        bin,
+        lines,
     }) = setup(4, 20)
     else {
         return;
     };
-    broker.create_topic("dead", 1);
     let scenes: Vec<String> = vec!["north".into(), "south".into()];
     let mut args = model_args(&scenes);
-    args.extend(kafka_args(&broker, "replicas", "r1"));
-    args.extend(["--kafka-dead-letter-topic".into(), "dead".into()]);
+    args.extend(kafka_args(broker, &topics, "replicas", "r1"));
+    // Records go out one at a time, stamped when sent: a generous wait, as this test is not
+    // about synchronization.
+    args.extend(["--sync-timeout".into(), "5s".into()]);
     let (child, base) = serve(bin, &args).await;
-    let p = producer(&broker);
-    let mut results = Results::new(&broker, "results");
+    let p = producer(broker);
+    let mut results = Results::new(broker, &topics.results);
 
     // The first 10 frames of both scenes, with malformed records in the middle of `north`'s
     // partition (not JSON, not a batch, no key) and a rejected one (a scene nobody serves).
@@ -37,14 +41,14 @@ async fn one_replica_publishes_every_batch_skips_malformed_and_resumes_after_res
             continue;
         }
         for s in &scenes {
-            send(&p, "batches", Some(s), line).await;
+            send(&p, &topics.batches, Some(s), line).await;
             expected.push((s.clone(), cam.clone(), *frame));
         }
         if i == 8 {
-            send(&p, "batches", Some("north"), "{not json").await;
-            send(&p, "batches", Some("north"), r#"{"scene":"north"}"#).await;
-            send(&p, "batches", None, &lines[0].2).await;
-            send(&p, "batches", Some("nowhere"), &lines[0].2).await;
+            send(&p, &topics.batches, Some("north"), "{not json").await;
+            send(&p, &topics.batches, Some("north"), r#"{"scene":"north"}"#).await;
+            send(&p, &topics.batches, None, &lines[0].2).await;
+            send(&p, &topics.batches, Some("nowhere"), &lines[0].2).await;
         }
     }
     results.wait_cover(&expected).await;
@@ -57,7 +61,12 @@ async fn one_replica_publishes_every_batch_skips_malformed_and_resumes_after_res
         let m = metrics_text(&base).await;
         lags = m
             .lines()
-            .filter(|l| l.starts_with("crossview_kafka_consumer_lag{topic=\"batches\""))
+            .filter(|l| {
+                l.starts_with(&format!(
+                    "crossview_kafka_consumer_lag{{topic=\"{}\"",
+                    topics.batches
+                ))
+            })
             .map(String::from)
             .collect();
         if !lags.is_empty() && lags.iter().all(|l| l.ends_with(" 0")) {
@@ -85,13 +94,11 @@ async fn one_replica_publishes_every_batch_skips_malformed_and_resumes_after_res
     // The refused records went to the dead-letter topic, each saying why.
     let dead: StreamConsumer = ClientConfig::new()
         .set("bootstrap.servers", &broker.addr)
-        .set("group.id", "checker-dead")
+        .set("group.id", format!("checker-{}", topics.dead))
         .set("auto.offset.reset", "earliest")
-        // tansu holds a group's first rebalance for half the session timeout.
-        .set("session.timeout.ms", "6000")
         .create()
         .unwrap();
-    dead.subscribe(&["dead"]).unwrap();
+    dead.subscribe(&[&topics.dead]).unwrap();
     let mut reasons = Vec::new();
     while reasons.len() < 4 {
         let m = guard("dead letters", dead.recv()).await.unwrap();
@@ -116,14 +123,15 @@ async fn one_replica_publishes_every_batch_skips_malformed_and_resumes_after_res
     .await;
     let before = results.seen.len();
     let mut args = model_args(&scenes);
-    args.extend(kafka_args(&broker, "replicas", "r2"));
+    args.extend(kafka_args(broker, &topics, "replicas", "r2"));
+    args.extend(["--sync-timeout".into(), "5s".into()]);
     let (_child, _base) = serve(bin, &args).await;
     for (cam, frame, line) in &lines {
         if *frame < 10 {
             continue;
         }
         for s in &scenes {
-            send(&p, "batches", Some(s), line).await;
+            send(&p, &topics.batches, Some(s), line).await;
             expected.push((s.clone(), cam.clone(), *frame));
         }
     }
@@ -146,18 +154,22 @@ async fn one_replica_publishes_every_batch_skips_malformed_and_resumes_after_res
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn protobuf_batches_in_and_protobuf_results_out() {
     let Some(Setup {
-        broker, bin, lines, ..
+        broker,
+        topics,
+        bin,
+        lines,
     }) = setup(2, 6)
     else {
         return;
     };
     let scenes: Vec<String> = vec!["east".into()];
     let mut args = model_args(&scenes);
-    args.extend(kafka_args(&broker, "proto", "p1"));
+    args.extend(kafka_args(broker, &topics, "proto", "p1"));
+    args.extend(["--sync-timeout".into(), "5s".into()]);
     args.extend(["--kafka-output-format".into(), "protobuf".into()]);
     let (_child, base) = serve(bin, &args).await;
-    let p = producer(&broker);
-    let mut results = Results::new(&broker, "results");
+    let p = producer(broker);
+    let mut results = Results::new(broker, &topics.results);
     // Even frames as protobuf `Batch` (named by the header), odd ones as JSON lines without
     // a header (the default input format); one record with a content type nobody reads.
     let mut expected = Vec::new();
@@ -168,20 +180,20 @@ async fn protobuf_batches_in_and_protobuf_results_out() {
             let pb = crossview_api::convert::batch_to_pb("east", &batch).encode_to_vec();
             send_with(
                 &p,
-                "batches",
+                &topics.batches,
                 Some("east"),
                 &pb,
                 Some("application/x-protobuf"),
             )
             .await;
         } else {
-            send(&p, "batches", Some("east"), line).await;
+            send(&p, &topics.batches, Some("east"), line).await;
         }
         expected.push(("east".to_string(), cam.clone(), *frame));
         if expected.len() == 3 {
             send_with(
                 &p,
-                "batches",
+                &topics.batches,
                 Some("east"),
                 line.as_bytes(),
                 Some("text/csv"),

@@ -1,18 +1,22 @@
-//! Kafka mode against a real Kafka-protocol broker (tansu, started by the test on a free
-//! loopback port; `make setup` fetches it): replicas of the real binary consume simulated
-//! recordings' batch lines keyed by scene and produce frame results keyed by scene.
+//! Kafka mode against a real Apache Kafka broker (one per test binary, on a free loopback
+//! port, each test on topics of its own; `make setup` resolves it from Maven Central):
+//! replicas of the real binary consume simulated recordings' batch lines keyed by scene and
+//! produce frame results keyed by scene.
 //!
 //! One module per guarantee: [`basic`] (one replica: every batch published, malformed records
 //! skipped, resume after a restart, protobuf), [`rebalance`] (replicas joining, dying and
-//! coming back mid-stream and mid-frame lose no camera batch).
+//! coming back mid-stream and mid-frame lose no camera batch), [`stream_time`] (a frame waits
+//! on the stream, not the wall clock: a paused replica cuts no frame, a camera that stops
+//! still yields partial frames, producers' clocks that are off cut nothing).
 
 mod basic;
 mod rebalance;
+mod stream_time;
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Duration;
 
-use crossview_testing::kafka::Broker;
+use crossview_testing::kafka::{Broker, Topics};
 use crossview_testing::*;
 use rdkafka::config::ClientConfig;
 use rdkafka::consumer::{Consumer, StreamConsumer};
@@ -56,24 +60,63 @@ fn simulate(bin: &str, dir: &std::path::Path, frames: u32) -> Vec<Line> {
         .collect()
 }
 
+/// The capture times the cameras stamp their records with: frame `f` of camera `camN` at
+/// `start_ms + f × 100 + N × spread_ms` (10 frames/s, each frame's cameras `spread_ms` apart).
+#[derive(Debug, Clone, Copy)]
+struct Capture {
+    start_ms: i64,
+    spread_ms: i64,
+}
+
+impl Capture {
+    /// Capture starting now.
+    fn live(spread_ms: i64) -> Self {
+        Capture::from_ms_ago(0, spread_ms)
+    }
+
+    /// Capture that started `ago_ms` ago (a backlog).
+    fn from_ms_ago(ago_ms: i64, spread_ms: i64) -> Self {
+        let now = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap()
+            .as_millis() as i64;
+        Capture {
+            start_ms: now - ago_ms,
+            spread_ms,
+        }
+    }
+
+    /// The stamp of `camera`'s batch of `frame`.
+    fn stamp(&self, camera: &str, frame: u64) -> i64 {
+        let n: i64 = camera.trim_start_matches("cam").parse().unwrap_or(0);
+        self.start_ms + frame as i64 * 100 + n * self.spread_ms
+    }
+}
+
 /// What every test starts from: a broker with topics `batches` and `results`, the binary,
 /// and a simulated recording's batch lines.
 struct Setup {
-    broker: Broker,
+    broker: &'static Broker,
+    topics: Topics,
     bin: &'static str,
     lines: Vec<Line>,
 }
 
-/// A fresh broker (`batches` with `partitions` partitions, `results` with one) and `frames`
-/// simulated frames; `None` when there is no broker binary (see [`Broker::start`]).
+/// The shared broker with fresh topics (`batches` with `partitions` partitions, `results` and
+/// `dead` with one) and `frames` simulated frames; `None` without a broker (see
+/// [`Broker::shared`]).
 fn setup(partitions: u32, frames: u32) -> Option<Setup> {
-    let broker = Broker::start()?;
-    broker.create_topic("batches", partitions);
-    broker.create_topic("results", 1);
+    let broker = Broker::shared()?;
+    let topics = broker.topics(partitions);
     let bin = env!("CARGO_BIN_EXE_crossview");
     let tmp = tempfile::tempdir().unwrap();
     let lines = simulate(bin, tmp.path(), frames);
-    Some(Setup { broker, bin, lines })
+    Some(Setup {
+        broker,
+        topics,
+        bin,
+        lines,
+    })
 }
 
 fn producer(broker: &Broker) -> FutureProducer {
@@ -123,8 +166,6 @@ impl Results {
             .set("bootstrap.servers", &broker.addr)
             .set("group.id", format!("checker-{topic}"))
             .set("auto.offset.reset", "earliest")
-            // tansu holds a group's first rebalance for half the session timeout.
-            .set("session.timeout.ms", "6000")
             .set("enable.auto.commit", "false")
             .create()
             .unwrap();
@@ -271,20 +312,23 @@ fn model_args(scenes: &[String]) -> Vec<String> {
         .collect()
 }
 
-fn kafka_args(broker: &Broker, group: &str, id: &str) -> Vec<String> {
+/// A replica's Kafka arguments: `topics`, group `group` (made unique to the topics), producer
+/// id `id`, the dead-letter topic.
+fn kafka_args(broker: &Broker, topics: &Topics, group: &str, id: &str) -> Vec<String> {
+    let group = format!("{group}-{}", topics.batches);
     [
         "--kafka-brokers",
         &broker.addr,
         "--kafka-input-topic",
-        "batches",
+        &topics.batches,
         "--kafka-output-topic",
-        "results",
+        &topics.results,
+        "--kafka-dead-letter-topic",
+        &topics.dead,
         "--kafka-group",
-        group,
+        &group,
         "--kafka-producer-id",
         id,
-        "--sync-timeout",
-        "5s",
     ]
     .iter()
     .map(|s| s.to_string())

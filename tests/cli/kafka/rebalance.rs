@@ -1,5 +1,6 @@
 //! Replicas joining, dying (SIGKILL) and coming back while camera batches stream in, each
-//! frame's cameras spread over time, and while a replica catches up a backlog. Asserted, by
+//! frame's cameras spread over time (and stamped with their capture times), and while a
+//! replica catches up a backlog; every replica with the default `--sync-timeout` (200 ms). Asserted, by
 //! reading the output and dead-letter topics from the beginning: every camera batch sent is in
 //! a result of its frame; no result is partial (a rebalance in the middle of a frame neither
 //! publishes the half it has nor rejects the rest as late); nothing is dead-lettered; the only
@@ -17,39 +18,44 @@ use rdkafka::producer::{FutureProducer, FutureRecord};
 use super::*;
 
 /// A sent camera batch: (scene, camera, frame).
-type Sent = (String, String, u64);
+pub(super) type Sent = (String, String, u64);
 
 /// Scene `i` lives on partition `i` (sent to explicit partitions).
-fn scenes(n: usize) -> Vec<String> {
+pub(super) fn scenes(n: usize) -> Vec<String> {
     (0..n).map(|i| format!("scene{i}")).collect()
 }
 
-/// Produces `line` of scene `i` to partition `i` of `batches`.
-async fn send_scene(p: &FutureProducer, i: usize, scene: &str, line: &str) {
-    let r = FutureRecord::to("batches")
+/// Produces `line` of scene `i` to partition `i` of `topic`, stamped `ts` (ms).
+async fn send_scene(p: &FutureProducer, topic: &str, i: usize, scene: &str, line: &str, ts: i64) {
+    let r = FutureRecord::to(topic)
         .partition(i as i32)
         .key(scene)
-        .payload(line);
+        .payload(line)
+        .timestamp(ts);
     guard("produce", p.send(r, Duration::from_secs(20)))
         .await
         .unwrap();
 }
 
 /// Sends frames `from..to` of every scene: one camera at a time (all scenes at once), `gap`
-/// after each camera, so a frame's cameras arrive over 4 × `gap`.
-async fn stream(
+/// after each camera, so a frame's cameras arrive over 4 × `gap`; each record stamped with
+/// its camera's capture time by `capture`.
+pub(super) async fn stream(
     p: &FutureProducer,
+    topic: &str,
     lines: &[Line],
     scenes: &[String],
     frames: std::ops::Range<u64>,
     gap: Duration,
+    capture: Capture,
 ) -> Vec<Sent> {
     let mut sent = Vec::new();
     for (cam, frame, line) in lines.iter().filter(|(_, f, _)| frames.contains(f)) {
+        let ts = capture.stamp(cam, *frame);
         let sends = scenes
             .iter()
             .enumerate()
-            .map(|(i, s)| send_scene(p, i, s, line));
+            .map(|(i, s)| send_scene(p, topic, i, s, line, ts));
         futures::future::join_all(sends).await;
         sent.extend(scenes.iter().map(|s| (s.clone(), cam.clone(), *frame)));
         if !gap.is_zero() {
@@ -60,26 +66,27 @@ async fn stream(
 }
 
 /// Streams in the background; the task returns what it sent.
-fn stream_in_background(
+pub(super) fn stream_in_background(
     p: Arc<FutureProducer>,
+    topic: String,
     lines: Vec<Line>,
     scenes: Vec<String>,
     frames: std::ops::Range<u64>,
     gap: Duration,
+    capture: Capture,
 ) -> tokio::task::JoinHandle<Vec<Sent>> {
-    tokio::spawn(async move { stream(&p, &lines, &scenes, frames, gap).await })
+    tokio::spawn(async move { stream(&p, &topic, &lines, &scenes, frames, gap, capture).await })
 }
 
-fn replica_args(broker: &Broker, scenes: &[String], id: &str) -> Vec<String> {
+pub(super) fn replica_args(s: &Setup, scenes: &[String], id: &str) -> Vec<String> {
     let mut args = model_args(scenes);
-    args.extend(kafka_args(broker, "replicas", id));
-    args.extend(["--kafka-dead-letter-topic".into(), "dead".into()]);
+    args.extend(kafka_args(s.broker, &s.topics, "replicas", id));
     args
 }
 
 /// Every batch of `sent` in a result, no partial result, duplicates only by another producer
 /// or epoch, nothing dead-lettered. Returns how many frames were published more than once.
-async fn check_exact(results: &mut Results, sent: &[Sent], broker: &Broker) -> usize {
+pub(super) async fn check_exact(results: &mut Results, sent: &[Sent], s: &Setup) -> usize {
     results.wait_cover(sent).await;
     results.read_for(Duration::from_secs(1)).await;
     let partial: Vec<&Value> = results
@@ -108,11 +115,11 @@ async fn check_exact(results: &mut Results, sent: &[Sent], broker: &Broker) -> u
     }
     // The dead-letter topic stays empty: its high watermark is 0.
     let dead: StreamConsumer = ClientConfig::new()
-        .set("bootstrap.servers", &broker.addr)
+        .set("bootstrap.servers", &s.broker.addr)
         .create()
         .unwrap();
     let (_, high) = dead
-        .fetch_watermarks("dead", 0, Duration::from_secs(10))
+        .fetch_watermarks(&s.topics.dead, 0, Duration::from_secs(10))
         .unwrap();
     assert_eq!(high, 0, "{high} batches were dead-lettered");
     eprintln!(
@@ -134,33 +141,33 @@ fn producers_of(results: &Results, frames: std::ops::Range<u64>) -> BTreeSet<Str
         .collect()
 }
 
-fn rebalance_setup(frames: u32) -> Option<(Setup, Vec<String>)> {
-    let s = setup(8, frames)?;
-    s.broker.create_topic("dead", 1);
-    Some((s, scenes(8)))
+pub(super) fn rebalance_setup(frames: u32) -> Option<(Setup, Vec<String>)> {
+    Some((setup(8, frames)?, scenes(8)))
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn a_replica_joining_mid_frame_loses_no_camera_batch() {
-    let Some((Setup { broker, bin, lines }, scenes)) = rebalance_setup(60) else {
+    let Some((s, scenes)) = rebalance_setup(60) else {
         return;
     };
-    let (_a, _) = serve(bin, &replica_args(&broker, &scenes, "a")).await;
-    let p = Arc::new(producer(&broker));
-    let mut results = Results::new(&broker, "results");
+    let (_a, _) = serve(s.bin, &replica_args(&s, &scenes, "a")).await;
+    let p = Arc::new(producer(s.broker));
+    let mut results = Results::new(s.broker, &s.topics.results);
     // 60 frames, each one's 4 cameras over 100 ms; B joins 1 s in, so the group rebalances
     // while frames are half sent.
     let streaming = stream_in_background(
         p.clone(),
-        lines.clone(),
+        s.topics.batches.clone(),
+        s.lines.clone(),
         scenes.clone(),
         0..60,
         Duration::from_millis(25),
+        Capture::live(25),
     );
     tokio::time::sleep(Duration::from_secs(1)).await;
-    let (_b, _) = serve(bin, &replica_args(&broker, &scenes, "b")).await;
+    let (_b, _) = serve(s.bin, &replica_args(&s, &scenes, "b")).await;
     let sent = streaming.await.unwrap();
-    check_exact(&mut results, &sent, &broker).await;
+    check_exact(&mut results, &sent, &s).await;
     assert_eq!(
         producers_of(&results, 40..60),
         BTreeSet::from(["a".to_string(), "b".to_string()]),
@@ -170,30 +177,32 @@ async fn a_replica_joining_mid_frame_loses_no_camera_batch() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn a_replica_killed_and_restarted_mid_stream_loses_no_camera_batch() {
-    let Some((Setup { broker, bin, lines }, scenes)) = rebalance_setup(200) else {
+    let Some((s, scenes)) = rebalance_setup(200) else {
         return;
     };
-    let (mut a, _) = serve(bin, &replica_args(&broker, &scenes, "a")).await;
-    let (_b, _) = serve(bin, &replica_args(&broker, &scenes, "b")).await;
-    let p = Arc::new(producer(&broker));
-    let mut results = Results::new(&broker, "results");
+    let (mut a, _) = serve(s.bin, &replica_args(&s, &scenes, "a")).await;
+    let (_b, _) = serve(s.bin, &replica_args(&s, &scenes, "b")).await;
+    let p = Arc::new(producer(s.broker));
+    let mut results = Results::new(s.broker, &s.topics.results);
     // 200 frames over about 20 s; A is killed 2 s in and comes back (as a2) 16 s in, well
     // after B took its scenes over (about 6 s session timeout plus the broker's rebalance
     // delay after the kill; more on a loaded machine).
     let streaming = stream_in_background(
         p.clone(),
-        lines.clone(),
+        s.topics.batches.clone(),
+        s.lines.clone(),
         scenes.clone(),
         0..200,
         Duration::from_millis(25),
+        Capture::live(25),
     );
     tokio::time::sleep(Duration::from_secs(2)).await;
     signal(&a, "KILL");
     let _ = a.wait();
     tokio::time::sleep(Duration::from_secs(14)).await;
-    let (_a2, _) = serve(bin, &replica_args(&broker, &scenes, "a2")).await;
+    let (_a2, _) = serve(s.bin, &replica_args(&s, &scenes, "a2")).await;
     let sent = streaming.await.unwrap();
-    check_exact(&mut results, &sent, &broker).await;
+    check_exact(&mut results, &sent, &s).await;
     // B took every scene over while A was dead (about 2..16 s: frames 20..160).
     let last_b: BTreeSet<&str> = results
         .seen
@@ -214,37 +223,54 @@ async fn a_replica_killed_and_restarted_mid_stream_loses_no_camera_batch() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn a_rebalance_while_catching_up_a_backlog_loses_no_camera_batch() {
-    let Some((Setup { broker, bin, lines }, scenes)) = rebalance_setup(80) else {
+    let Some((s, scenes)) = rebalance_setup(80) else {
         return;
     };
-    // The whole backlog first, then two replicas one after the other: the second joins while
-    // the first reads the backlog.
-    let p = producer(&broker);
-    let sent = stream(&p, &lines, &scenes, 0..80, Duration::ZERO).await;
-    let mut results = Results::new(&broker, "results");
-    let (_a, _) = serve(bin, &replica_args(&broker, &scenes, "a")).await;
-    let (_b, _) = serve(bin, &replica_args(&broker, &scenes, "b")).await;
-    check_exact(&mut results, &sent, &broker).await;
+    // The whole backlog first (captured from 30 s ago on, as by a replica that comes back
+    // that far behind), then two replicas one after the other: the second joins while the
+    // first reads the backlog.
+    let p = producer(s.broker);
+    let capture = Capture::from_ms_ago(30_000, 25);
+    let sent = stream(
+        &p,
+        &s.topics.batches,
+        &s.lines,
+        &scenes,
+        0..80,
+        Duration::ZERO,
+        capture,
+    )
+    .await;
+    let mut results = Results::new(s.broker, &s.topics.results);
+    let (_a, _) = serve(s.bin, &replica_args(&s, &scenes, "a")).await;
+    let (_b, _) = serve(s.bin, &replica_args(&s, &scenes, "b")).await;
+    check_exact(&mut results, &sent, &s).await;
 }
 
-/// A backlog read with a 1 ms sync timeout. Each frame's cameras lie far apart in the
-/// partition (per block of 16 frames: every frame's first camera, then every frame's second,
-/// …), as they do when cameras send in bursts; counted while the backlog is read, the timeout
-/// would publish most frames partial and refuse their last cameras as late. The replica holds
-/// the timeouts until each partition's end: every frame comes out whole.
+/// A backlog read with a 1 ms sync timeout, each frame's cameras captured at the same instant:
+/// on the reader's clock the backlog's frames would be cut while it is read (the old
+/// wall-clock wait held them only until the partition's end); on stream time a frame is cut
+/// only when the stream has moved past it, so every frame comes out whole.
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn a_backlog_is_read_whole_whatever_the_sync_timeout() {
-    let Some((Setup { broker, bin, lines }, scenes)) = rebalance_setup(48) else {
+    let Some((s, scenes)) = rebalance_setup(48) else {
         return;
     };
-    let mut ordered = lines.clone();
-    ordered.sort_by_key(|(cam, frame, _)| (frame / 16, cam.clone(), *frame));
-    let p = producer(&broker);
-    let sent = stream(&p, &ordered, &scenes, 0..48, Duration::ZERO).await;
-    let mut results = Results::new(&broker, "results");
-    let mut args = replica_args(&broker, &scenes, "a");
-    let at = args.iter().position(|a| a == "--sync-timeout").unwrap();
-    args[at + 1] = "1ms".into();
-    let (_a, _) = serve(bin, &args).await;
-    check_exact(&mut results, &sent, &broker).await;
+    let p = producer(s.broker);
+    let capture = Capture::from_ms_ago(10_000, 0);
+    let sent = stream(
+        &p,
+        &s.topics.batches,
+        &s.lines,
+        &scenes,
+        0..48,
+        Duration::ZERO,
+        capture,
+    )
+    .await;
+    let mut results = Results::new(s.broker, &s.topics.results);
+    let mut args = replica_args(&s, &scenes, "a");
+    args.extend(["--sync-timeout".into(), "1ms".into()]);
+    let (_a, _) = serve(s.bin, &args).await;
+    check_exact(&mut results, &sent, &s).await;
 }

@@ -37,13 +37,15 @@ use crate::sync::{Rejection, Synchronizer};
 mod admission;
 mod clock;
 mod published;
+mod timebase;
 mod validate;
-mod watermark;
 mod worker;
 
 pub use crate::registry::SceneInfo;
 pub use published::Published;
+pub use timebase::StreamClock;
 
+use admission::PartialCause;
 pub(crate) use worker::Model;
 use worker::{Job, Worker};
 
@@ -63,8 +65,8 @@ pub struct SceneOptions {
 
 struct Intake {
     sync: Synchronizer,
-    /// The synchronizer's clock for timeouts: wall time, or a transport's input watermark.
-    watermark: watermark::Watermark,
+    /// The clock sync timeouts run on: wall time, or the stream time of a Kafka partition.
+    timebase: timebase::Timebase,
     jobs: Option<std::sync::mpsc::Sender<Job>>,
 }
 
@@ -183,7 +185,7 @@ impl Scene {
             intake: Mutex::new(Intake {
                 sync: Synchronizer::new(n, sync_timeout, max_pending)
                     .with_window(limits.frame_window),
-                watermark: watermark::Watermark::default(),
+                timebase: timebase::Timebase::default(),
                 jobs: Some(tx),
             }),
             spec,
@@ -295,7 +297,7 @@ impl Scene {
             self.check_cost("detections", frame, &counts)?;
         }
         let now = Instant::now();
-        let clock = intake.watermark.at(now);
+        let clock = intake.timebase.at(now);
         let emitted = match intake.sync.push_at(cam, frame, detections, now, clock) {
             Ok(e) => e,
             Err(r) => return Err(self.rejected(&intake, r, camera, frame_id)),
@@ -311,7 +313,7 @@ impl Scene {
         if let (Some(r), Some(dets)) = (&self.recorder, recorded) {
             r.record(cam, offset, frame_id, dets);
         }
-        self.enqueue(&mut intake, emitted);
+        self.enqueue(&mut intake, emitted, now, PartialCause::Timeout);
         drop(intake);
         // The earliest deadline may have changed.
         self.wake.notify_one();
@@ -384,25 +386,38 @@ impl Scene {
         }
     }
 
-    /// Emits whatever timed out by wall time `now` (or by the input watermark, if one is
-    /// kept); returns when to look again (none: when woken).
+    /// Emits whatever timed out by wall time `now` (or by the scene's stream time, when it
+    /// follows one); returns when to look again (none: when woken).
     pub fn tick(&self, now: Instant) -> Option<Instant> {
         let mut intake = lock(&self.intake);
-        let clock = intake.watermark.at(now);
+        let clock = intake.timebase.at(now);
         let emitted = intake.sync.poll(clock);
         if !emitted.is_empty() {
-            self.enqueue(&mut intake, emitted);
+            // Without a new batch: on stream time only the idle fallback moves the clock here.
+            let cause = if intake.timebase.is_stream() {
+                PartialCause::Idle
+            } else {
+                PartialCause::Timeout
+            };
+            self.enqueue(&mut intake, emitted, now, cause);
         }
         let deadline = intake.sync.next_deadline()?;
-        intake.watermark.wake_at(deadline, now)
+        intake.timebase.wake_at(deadline)
     }
 
-    /// Sets the scene's input watermark ([`watermark`]): `Some(t)` when the transport has read
-    /// every record written before `t` (sync timeouts are measured against it, so a frame
-    /// never times out while its other cameras may still be unread); `None` for wall time.
-    /// Kafka mode keeps one per input partition.
-    pub fn read_until(&self, read_until: Option<Instant>) {
-        lock(&self.intake).watermark.set(read_until);
+    /// Runs the scene's sync timeouts on `clock`, a Kafka partition's stream time ([`timebase`]),
+    /// or (`None`) on wall time again. Pending frames are dropped first when the timebase
+    /// changes ([`restart`](Self::restart) is how a transport does that).
+    pub fn follow_stream(&self, clock: Option<StreamClock>) {
+        lock(&self.intake).timebase = match clock {
+            Some(c) => timebase::Timebase::Stream(c),
+            None => timebase::Timebase::Wall,
+        };
+        self.wake.notify_one();
+    }
+
+    /// The stream time the scene follows has moved: look at its timeouts.
+    pub fn stream_moved(&self) {
         self.wake.notify_one();
     }
 
@@ -412,7 +427,7 @@ impl Scene {
     pub fn restart(&self, last_emitted: Option<u64>) -> usize {
         let mut intake = lock(&self.intake);
         let n = intake.sync.restart(last_emitted);
-        intake.watermark.set(None);
+        intake.timebase = timebase::Timebase::Wall;
         self.metrics.pending(self.name(), 0);
         n
     }
@@ -522,7 +537,7 @@ impl Scene {
             let mut intake = lock(&self.intake);
             let emitted = intake.sync.flush();
             let n = emitted.len();
-            self.enqueue(&mut intake, emitted);
+            self.enqueue(&mut intake, emitted, Instant::now(), PartialCause::Timeout);
             intake.jobs = None;
             tracing::info!(scene = self.name(), flushed = n, "scene intake closed");
         }

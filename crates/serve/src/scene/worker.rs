@@ -27,8 +27,12 @@ use crate::sync::Emitted;
 
 /// Work for the worker.
 pub(super) enum Job {
-    /// A frame from the synchronizer: publish its result.
-    Stream(Emitted),
+    /// A frame from the synchronizer: publish its result. Its frame deadline runs from
+    /// `deadline_from`.
+    Stream {
+        frame: Emitted,
+        deadline_from: Instant,
+    },
     /// A unary request: answer it (its error, with its kind, goes back to the caller).
     Unary {
         frame: Frame,
@@ -74,8 +78,11 @@ impl Worker {
     pub(super) fn run(mut self, rx: std::sync::mpsc::Receiver<Job>) {
         while let Ok(job) = rx.recv() {
             match job {
-                Job::Stream(e) => {
-                    let (r, embeddings) = self.stream_result(&e.frame, e.first_seen);
+                Job::Stream {
+                    frame: e,
+                    deadline_from,
+                } => {
+                    let (r, embeddings) = self.stream_result(&e.frame, e.first_seen, deadline_from);
                     self.metrics
                         .frame_latency(&self.spec.name, e.first_seen.elapsed());
                     self.queued.fetch_sub(1, Ordering::AcqRel);
@@ -144,6 +151,7 @@ impl Worker {
         &mut self,
         frame: &Frame,
         first_seen: Instant,
+        deadline_from: Instant,
     ) -> (FrameResult, Option<FrameEmbeddings>) {
         if self.model.is_none() {
             self.metrics.unassociated(&self.spec.name);
@@ -151,7 +159,7 @@ impl Worker {
             r.status = ResultStatus::NoModel;
             return (r, None);
         }
-        match self.associate_in_time(frame, first_seen) {
+        match self.associate_in_time(frame, deadline_from) {
             Ok((ids, embeddings)) => {
                 let tracks = match &mut self.tracker {
                     Some(tracker) => tracker
@@ -180,13 +188,14 @@ impl Worker {
         }
     }
 
-    /// The frame's identities, unless it waited too long to be associated at all.
+    /// The frame's identities, unless it waited too long (since `deadline_from`) to be
+    /// associated at all.
     fn associate_in_time(
         &mut self,
         frame: &Frame,
-        first_seen: Instant,
+        deadline_from: Instant,
     ) -> Result<(Vec<Identity>, FrameEmbeddings)> {
-        self.check_deadline(first_seen)?;
+        self.check_deadline(deadline_from)?;
         self.associate(frame)
     }
 

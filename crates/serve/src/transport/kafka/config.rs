@@ -15,6 +15,12 @@ pub struct KafkaConfig {
     pub output_topic: String,
     /// Consumer group the replicas share.
     pub group: String,
+    /// The group's rebalance protocol (`--kafka-group-protocol`).
+    pub group_protocol: GroupProtocol,
+    /// Static membership (librdkafka `group.instance.id`, `--kafka-instance-id`): a replica
+    /// that comes back under the same id within the session takes its partitions back
+    /// without a rebalance. Unique per replica (a StatefulSet's pod name).
+    pub instance_id: Option<String>,
     /// This replica's name in its results' `producer.id` (default: host name and process id).
     pub producer_id: String,
     /// Where malformed and rejected records are copied (with a `crossview-error` header);
@@ -47,6 +53,8 @@ impl std::fmt::Debug for KafkaConfig {
             .field("input_topic", &self.input_topic)
             .field("output_topic", &self.output_topic)
             .field("group", &self.group)
+            .field("group_protocol", &self.group_protocol)
+            .field("instance_id", &self.instance_id)
             .field("producer_id", &self.producer_id)
             .field("dead_letter_topic", &self.dead_letter_topic)
             .field("properties", &props)
@@ -65,6 +73,8 @@ impl KafkaConfig {
             input_topic: input_topic.into(),
             output_topic: output_topic.into(),
             group: group.into(),
+            group_protocol: GroupProtocol::default(),
+            instance_id: None,
             producer_id: default_producer_id(),
             dead_letter_topic: None,
             properties: Vec::new(),
@@ -91,18 +101,28 @@ impl KafkaConfig {
         c
     }
 
-    /// The consumer's configuration: manual commits, no auto offset store, the rebalance
-    /// defaults of [`CONSUMER_DEFAULTS`], then the user's properties (which win), then the
-    /// statistics interval (always [`STATISTICS_INTERVAL_MS`]).
+    /// The consumer's configuration: manual commits, no auto offset store, the group
+    /// protocol with its defaults ([`CONSUMER_DEFAULTS`], and for the classic protocol
+    /// [`CLASSIC_DEFAULTS`]), the static member id, then the user's properties (which win),
+    /// then the statistics interval (always [`STATISTICS_INTERVAL_MS`]).
     pub(super) fn consumer_config(&self) -> ClientConfig {
         let mut c = self.client();
         c.set("group.id", &self.group)
+            .set("group.protocol", self.group_protocol.as_str())
             .set("enable.auto.commit", "false")
             .set("enable.auto.offset.store", "false")
             .set("auto.offset.reset", "earliest")
             .set("enable.partition.eof", "false");
         for (k, v) in CONSUMER_DEFAULTS {
             c.set(*k, *v);
+        }
+        if self.group_protocol == GroupProtocol::Classic {
+            for (k, v) in CLASSIC_DEFAULTS {
+                c.set(*k, *v);
+            }
+        }
+        if let Some(id) = &self.instance_id {
+            c.set("group.instance.id", id);
         }
         let mut c = self.with_properties(c, true);
         // Not the user's to change: the statistics' high watermarks are how a replica knows
@@ -141,21 +161,59 @@ impl KafkaConfig {
 /// holds its timeouts before they expire.
 pub const STATISTICS_INTERVAL_MS: u64 = 100;
 
-/// Consumer defaults (docs/kafka.md, "Rebalances"): for a takeover in seconds, incremental
-/// rebalancing (only the partitions that move stop), a dead replica noticed after 6 s (the
-/// smallest session Apache Kafka brokers accept by default), heartbeats every 500 ms. Static
-/// membership (`group.instance.id`) is left to `--kafka-property`: the pinned test broker
-/// never hands a dead static member's partitions over.
+/// Consumer defaults of both group protocols.
 pub const CONSUMER_DEFAULTS: &[(&str, &str)] = &[
+    // A fetch returns after at most 10 ms without new records (librdkafka's default is
+    // 500 ms): a frame's cameras are delivered as they are written, not in bursts.
+    ("fetch.wait.max.ms", "10"),
+];
+
+/// Defaults of the classic protocol (docs/kafka.md, "Rebalances"): incremental rebalancing
+/// (only the partitions that move stop), a dead replica noticed after 6 s (the smallest session
+/// Apache Kafka brokers accept by default), heartbeats every 500 ms. With the `consumer`
+/// protocol these are the broker's and the group's settings, and librdkafka refuses them.
+pub const CLASSIC_DEFAULTS: &[(&str, &str)] = &[
     ("partition.assignment.strategy", "cooperative-sticky"),
     ("session.timeout.ms", "6000"),
     ("heartbeat.interval.ms", "500"),
-    // A fetch returns after at most 10 ms without new records (librdkafka's default is
-    // 500 ms). Brokers that hold every fetch for the full wait (tansu 0.6.0) otherwise deliver
-    // a frame's cameras in bursts 500 ms apart, beyond the 200 ms sync timeout: the frame is
-    // published partial and its last cameras are refused as late.
-    ("fetch.wait.max.ms", "10"),
 ];
+
+/// A consumer group's rebalance protocol (librdkafka `group.protocol`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum GroupProtocol {
+    /// The classic protocol: the members assign (cooperative-sticky here), session and
+    /// heartbeat set by each client ([`CLASSIC_DEFAULTS`]).
+    #[default]
+    Classic,
+    /// KIP-848: the broker assigns incrementally and sticky; session and heartbeat are the
+    /// broker's (`group.consumer.*`) or the group's settings.
+    Consumer,
+}
+
+impl GroupProtocol {
+    /// The librdkafka `group.protocol` value.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            GroupProtocol::Classic => "classic",
+            GroupProtocol::Consumer => "consumer",
+        }
+    }
+}
+
+/// `classic` or `consumer`, any case: the spelling of `--kafka-group-protocol`.
+impl std::str::FromStr for GroupProtocol {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s.to_ascii_lowercase().as_str() {
+            "classic" => Ok(GroupProtocol::Classic),
+            "consumer" => Ok(GroupProtocol::Consumer),
+            _ => {
+                let shown: String = s.chars().take(64).collect();
+                Err(format!("'{shown}' is not classic or consumer"))
+            }
+        }
+    }
+}
 
 /// Prefixes of librdkafka properties only a consumer knows.
 const CONSUMER_ONLY: &[&str] = &[
@@ -199,4 +257,40 @@ fn default_producer_id() -> String {
         .filter(|h| !h.is_empty())
         .unwrap_or_else(|| "crossview".into());
     format!("{host}-{}", std::process::id())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The classic protocol carries the client-side session and assignment; the `consumer`
+    /// protocol none of them (librdkafka refuses them there); a static id goes to both.
+    #[test]
+    fn each_group_protocol_gets_its_own_settings() {
+        let mut k = KafkaConfig::new("b:9092", "in", "out", "g");
+        let c = k.consumer_config();
+        assert_eq!(c.get("group.protocol"), Some("classic"));
+        assert_eq!(c.get("session.timeout.ms"), Some("6000"));
+        assert_eq!(
+            c.get("partition.assignment.strategy"),
+            Some("cooperative-sticky")
+        );
+        assert_eq!(c.get("group.instance.id"), None);
+        k.group_protocol = "Consumer".parse().unwrap();
+        k.instance_id = Some("crossview-0".into());
+        let c = k.consumer_config();
+        assert_eq!(c.get("group.protocol"), Some("consumer"));
+        for key in [
+            "session.timeout.ms",
+            "heartbeat.interval.ms",
+            "partition.assignment.strategy",
+        ] {
+            assert_eq!(c.get(key), None, "{key}");
+        }
+        assert_eq!(c.get("group.instance.id"), Some("crossview-0"));
+        assert_eq!(c.get("fetch.wait.max.ms"), Some("10"));
+        assert!("eager".parse::<GroupProtocol>().is_err());
+        // The producer knows nothing of groups.
+        assert_eq!(k.producer_config().get("group.instance.id"), None);
+    }
 }

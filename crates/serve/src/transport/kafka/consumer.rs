@@ -8,14 +8,13 @@ use rdkafka::producer::FutureRecord;
 use rdkafka::util::Timeout;
 
 use super::codec::{content_type, decode};
-use super::{Kafka, ValueFormat, read_until};
+use super::{Kafka, ValueFormat, now_ms, wake};
 use crate::error::{Error, Result};
 use crate::locks::lock;
 
-/// How long consumption may wait for room (frames in flight at their cap) before sync
-/// timeouts go back to wall time: frames that wait for the input watermark may be what fills
-/// it, waiting for records the wait keeps unread. Far above the time an encoder needs to free
-/// a slot.
+/// How long consumption may wait for room (frames in flight at their cap) before stream time
+/// runs on by the wall clock: frames that wait on stream time may be what fills it, waiting
+/// for records the wait keeps unread. Far above the time an encoder needs to free a slot.
 const STUCK: Duration = Duration::from_secs(1);
 
 /// One consumed input record.
@@ -55,9 +54,18 @@ impl Kafka {
                 }
             };
             let (partition, offset) = (msg.partition(), msg.offset());
-            let Some(redelivered) = lock(&self.offsets).consumed(partition, offset) else {
-                // Fetched before its partition was revoked: left to the owner.
-                continue;
+            let stamp = msg.timestamp().to_millis();
+            let redelivered = {
+                let mut o = lock(&self.offsets);
+                let Some(redelivered) = o.consumed(partition, offset) else {
+                    // Fetched before its partition was revoked: left to the owner.
+                    continue;
+                };
+                // Stream time moves to the record's stamp before its batch is pushed.
+                if o.deliver(partition, stamp, std::time::Instant::now(), now_ms()) == Some(false) {
+                    self.metrics().kafka_untimed();
+                }
+                redelivered
             };
             let record = Record {
                 key: msg.key(),
@@ -74,33 +82,33 @@ impl Kafka {
         }
     }
 
-    /// Waits while too many frames wait for their results. Frames whose timeouts wait for
-    /// the input watermark could wait for records this wait keeps unread: after [`STUCK`]
-    /// without room, every scene goes back to wall time.
+    /// Waits while too many frames wait for their results. Frames whose timeouts run on
+    /// stream time could wait for records this wait keeps unread: after [`STUCK`] without
+    /// room, stream time runs on by the wall clock (every 100 ms) until there is room.
     async fn backpressure(&self) {
         let started = std::time::Instant::now();
-        let mut released = false;
+        let mut warned = false;
+        let mut last_run = started;
         while lock(&self.offsets).in_flight() >= self.config.max_in_flight
             && self.service.accepting()
         {
-            if !released && started.elapsed() >= STUCK {
-                self.release_holds("no room for frames in flight");
-                released = true;
+            let now = std::time::Instant::now();
+            if now.duration_since(started) >= STUCK
+                && now.duration_since(last_run) >= Duration::from_millis(100)
+            {
+                last_run = now;
+                let scenes = lock(&self.offsets).stuck(now);
+                if !warned && !scenes.is_empty() {
+                    tracing::warn!(
+                        ?scenes,
+                        "kafka: no room for frames in flight for {STUCK:?}; stream time runs \
+                         on by the wall clock"
+                    );
+                    warned = true;
+                }
+                wake(&self.service, &scenes);
             }
             tokio::time::sleep(Duration::from_millis(2)).await;
-        }
-    }
-
-    /// Every scene back to wall time for its sync timeouts (consumption is stuck: see
-    /// [`STUCK`]); the next statistics set their watermarks again.
-    fn release_holds(&self, why: &str) {
-        let scenes = lock(&self.offsets).release_all();
-        if !scenes.is_empty() {
-            tracing::warn!(
-                ?scenes,
-                "kafka: {why} for {STUCK:?}; sync timeouts on wall time"
-            );
-            read_until(&self.service, &scenes, None);
         }
     }
 
@@ -163,22 +171,22 @@ impl Kafka {
     }
 
     /// The first record of `scene` since its partition was (re)assigned: the scene starts
-    /// afresh just past its last produced frame (none: from scratch), its sync timeouts
-    /// measured against the partition's input watermark. A scene nobody serves is not
-    /// tracked (its records are refused): hostile keys never grow the bookkeeping.
+    /// afresh just past its last produced frame (none: from scratch), its sync timeouts on
+    /// the partition's stream time. A scene nobody serves is not tracked (its records are
+    /// refused): hostile keys never grow the bookkeeping.
     fn enter_scene(&self, scene: &str, partition: i32) {
         let Some(s) = self.service.find_scene(scene) else {
             return;
         };
-        let (last, until) = {
+        let (last, clock) = {
             let mut o = lock(&self.offsets);
             let Some(last) = o.enter_scene(scene, partition) else {
                 return;
             };
-            (last, o.read_until(partition))
+            (last, o.clock(partition))
         };
         let dropped = s.restart(last);
-        s.read_until(until);
+        s.follow_stream(clock);
         tracing::info!(
             scene,
             partition,

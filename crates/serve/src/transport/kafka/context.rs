@@ -9,7 +9,7 @@ use rdkafka::{ClientContext, Offset, Statistics, TopicPartitionList};
 use crate::error::{Error, Result};
 
 use super::offsets::Ownership;
-use super::{lock, now_ms, read_until};
+use super::{lock, now_ms, wake};
 use crate::metrics::Metrics;
 use crate::service::Service;
 
@@ -69,6 +69,7 @@ impl ClientContext for Context {
             tracing::debug!(?late, "kafka: statistics handled late");
         }
         let mut moved = Vec::new();
+        let wall = now_ms();
         {
             let mut owned = lock(&self.offsets);
             for (p, part) in &t.partitions {
@@ -79,23 +80,29 @@ impl ClientContext for Context {
                     self.metrics.kafka_lag(&self.topic, *p, part.consumer_lag);
                 }
                 let read = part.committed_offset.max(part.app_offset);
-                moved.extend(owned.watermark(*p, part.hi_offset, read, at));
+                if let Some((ms, scenes)) = owned.report(*p, part.hi_offset, read, at) {
+                    if ms > 0 {
+                        self.metrics.kafka_stream_time(&self.topic, *p, ms, wall);
+                    }
+                    moved.extend(scenes);
+                }
             }
         }
-        for (until, scenes) in moved {
-            read_until(&self.service, &scenes, Some(until));
-        }
+        wake(&self.service, &moved);
     }
 }
 
 impl ConsumerContext for Context {
     fn pre_rebalance(&self, consumer: &BaseConsumer<Self>, rebalance: &Rebalance<'_>) {
+        // Delivery is held while the rebalance lasts: stream time does not run on.
+        lock(&self.offsets).hold_all();
         if let Rebalance::Revoke(list) = rebalance {
             self.revoke(consumer, list);
         }
     }
 
     fn post_rebalance(&self, _consumer: &BaseConsumer<Self>, rebalance: &Rebalance<'_>) {
+        lock(&self.offsets).release_all(Instant::now());
         match rebalance {
             Rebalance::Assign(list) => {
                 let mut offsets = lock(&self.offsets);

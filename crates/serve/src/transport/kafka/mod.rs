@@ -40,8 +40,9 @@ mod consumer;
 mod context;
 mod offsets;
 mod producer;
+mod stream_time;
 
-pub use config::{CONSUMER_DEFAULTS, KafkaConfig, ValueFormat};
+pub use config::{CLASSIC_DEFAULTS, CONSUMER_DEFAULTS, GroupProtocol, KafkaConfig, ValueFormat};
 use context::{Context, commit_list};
 use offsets::Ownership;
 
@@ -134,12 +135,11 @@ pub fn start(service: Arc<Service>, config: KafkaConfig) -> Result<tokio::task::
     }))
 }
 
-/// Moves the input watermark of `scenes` ([`crate::scene::Scene::read_until`]; `None`: back
-/// to wall time).
-fn read_until(service: &Service, scenes: &[String], until: Option<std::time::Instant>) {
+/// Tells `scenes` that the stream time they follow moved.
+fn wake(service: &Service, scenes: &[String]) {
     for name in scenes {
         if let Some(scene) = service.find_scene(name) {
-            scene.read_until(until);
+            scene.stream_moved();
         }
     }
 }

@@ -12,12 +12,13 @@
 //!   frames already produced are recognised as re-deliveries.
 //! * Per partition ever owned, one past the highest offset consumed: a record below it was
 //!   read before (a re-delivery after a rebalance).
-//! * Per owned partition, its *watermark*: the time up to which every record written to it
-//!   has been read here (from the consumer's statistics: read up to their high watermark).
-//!   Its scenes' sync timeouts are measured against it ([`crate::scene::Scene::read_until`]),
-//!   so a frame never times out while the rest of its cameras may still be unread.
+//! * Per owned partition, its *stream time* ([`PartitionTime`]): its scenes' sync timeouts
+//!   run on it, so a frame never times out while delivery is held.
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::time::Instant;
+
+use super::stream_time::PartitionTime;
+use crate::scene::StreamClock;
 
 /// The offsets of one owned input partition.
 #[derive(Debug, Default)]
@@ -30,8 +31,8 @@ struct Part {
     committed: Option<i64>,
     /// Which assignment of the partition this is.
     generation: u64,
-    /// Every record written before this instant has been read (at first: the assignment).
-    read_until: Option<Instant>,
+    /// Its stream time.
+    time: PartitionTime,
 }
 
 impl Part {
@@ -91,7 +92,6 @@ impl Ownership {
                 partition,
                 Part {
                     generation,
-                    read_until: Some(Instant::now()),
                     ..Part::default()
                 },
             );
@@ -116,44 +116,71 @@ impl Ownership {
         )
     }
 
-    /// Owned `partition`'s watermark (see the module docs); `None` when not owned or after
-    /// [`release_all`](Self::release_all).
-    pub(super) fn read_until(&self, partition: i32) -> Option<Instant> {
-        self.parts.get(&partition).and_then(|p| p.read_until)
+    /// The stream clock of owned `partition` (see the module docs).
+    pub(super) fn clock(&self, partition: i32) -> Option<StreamClock> {
+        self.parts.get(&partition).map(|p| p.time.clock())
+    }
+
+    /// A record stamped `ts` of owned `partition` was delivered at wall time `now` (`now_ms`):
+    /// see [`PartitionTime::deliver`]. `None` when the partition is not owned.
+    pub(super) fn deliver(
+        &mut self,
+        partition: i32,
+        ts: Option<i64>,
+        now: Instant,
+        now_ms: u64,
+    ) -> Option<bool> {
+        Some(
+            self.parts
+                .get_mut(&partition)?
+                .time
+                .deliver(ts, now, now_ms),
+        )
     }
 
     /// The consumer's statistics for owned `partition`, emitted at `at`: the broker's high
     /// watermark `high` and where librdkafka has the consumer (its committed or application
-    /// offset, whichever is further; negative: unknown). When
-    /// everything below `high` was read, every record written before `at` was, and the
-    /// watermark moves to `at`: returns it and the scenes running on the partition.
-    pub(super) fn watermark(
+    /// offset, whichever is further; negative: unknown). Caught up when everything below
+    /// `high` was read ([`PartitionTime::report`]). Returns the stream time, and the scenes on
+    /// the partition when it moved; `None` when not owned.
+    pub(super) fn report(
         &mut self,
         partition: i32,
         high: i64,
         position: i64,
         at: Instant,
-    ) -> Option<(Instant, Vec<String>)> {
+    ) -> Option<(u64, Vec<String>)> {
         let p = self.parts.get_mut(&partition)?;
         let read = p.next.unwrap_or(i64::MIN).max(position);
-        if high < 0 || read < high {
-            return None;
-        }
-        let w = p.read_until.map_or(at, |w| w.max(at));
-        p.read_until = Some(w);
-        Some((w, self.scenes_on(|q| q == partition)))
+        let moved = p.time.report(high >= 0 && read >= high, at);
+        let ms = p.time.millis();
+        let scenes = if moved {
+            self.scenes_on(|q| q == partition)
+        } else {
+            Vec::new()
+        };
+        Some((ms, scenes))
     }
 
-    /// Forgets every partition's watermark (consumption is stuck, so nothing unread is on its
-    /// way): their scenes go back to wall time until the next statistics. Returns the scenes.
-    pub(super) fn release_all(&mut self) -> Vec<String> {
-        let mut released = Vec::new();
-        for (&q, p) in self.parts.iter_mut() {
-            if p.read_until.take().is_some() {
-                released.push(q);
-            }
-        }
-        self.scenes_on(|q| released.contains(&q))
+    /// Consumption is stuck ([`PartitionTime::stuck`]): returns the scenes whose stream time
+    /// moved.
+    pub(super) fn stuck(&mut self, now: Instant) -> Vec<String> {
+        let moved: Vec<i32> = self
+            .parts
+            .iter_mut()
+            .filter_map(|(&q, p)| p.time.stuck(now).then_some(q))
+            .collect();
+        self.scenes_on(|q| moved.contains(&q))
+    }
+
+    /// A rebalance began: every owned partition's delivery is held.
+    pub(super) fn hold_all(&mut self) {
+        self.parts.values_mut().for_each(|p| p.time.hold());
+    }
+
+    /// The rebalance ended at `now`.
+    pub(super) fn release_all(&mut self, now: Instant) {
+        self.parts.values_mut().for_each(|p| p.time.release(now));
     }
 
     /// The scenes last started on a partition `on` accepts.
@@ -394,65 +421,56 @@ mod tests {
         assert_eq!(o.take_frame("grpc-only", 1), Publish::Unheld);
     }
 
-    /// The watermark starts at the assignment and moves to a statistics' time only when
-    /// everything below their high watermark was read (or committed); it never moves back;
-    /// `release_all` forgets it until the next statistics.
+    /// Stream time per owned partition: records move it, a statistics report moves it on
+    /// only when everything below the high watermark was read (or committed), and it reaches
+    /// the scenes started on the partition; stuck consumption moves every partition on.
     #[test]
-    fn the_watermark_moves_only_when_everything_written_was_read() {
+    fn stream_time_moves_by_records_and_by_caught_up_quiet() {
         use std::time::Duration;
         let ms = Duration::from_millis;
-        let sorted = |r: Option<(Instant, Vec<String>)>| {
-            r.map(|(t, mut v)| {
-                v.sort();
-                (t, v)
-            })
-        };
-        let t0 = Instant::now();
+        let (t0, w0) = (Instant::now(), 1_000_000u64);
+        let stamp = |ms: u64| Some(ms as i64);
         let mut o = Ownership::default();
-        assert_eq!(o.read_until(0), None, "not owned");
-        assert_eq!(o.watermark(9, 5, 0, t0), None, "not owned");
+        assert!(o.clock(0).is_none(), "not owned");
+        assert_eq!(o.report(9, 5, 0, t0), None, "not owned");
+        assert_eq!(o.deliver(9, stamp(w0), t0, w0), None, "not owned");
         o.assign(0);
         o.assign(1);
-        let start = o.read_until(0).expect("from the assignment");
-        assert!(start >= t0);
         o.enter_scene("a", 0);
         o.enter_scene("b", 0);
         o.enter_scene("c", 1);
-        let t1 = start + ms(100);
-        // 10 records on the broker, none read.
-        assert_eq!(o.watermark(0, 10, -1001, t1), None);
+        let clock = o.clock(0).unwrap();
         o.consumed(0, 8);
-        assert_eq!(o.watermark(0, 10, -1001, t1), None, "9 unread");
+        assert_eq!(o.deliver(0, stamp(w0), t0, w0), Some(true));
+        assert_eq!(clock.millis(), w0);
+        // 10 records on the broker, 9 read: not caught up.
+        assert_eq!(o.report(0, 10, -1001, t0 + ms(100)), Some((w0, vec![])));
         o.consumed(0, 9);
-        let ab = vec!["a".to_string(), "b".to_string()];
+        o.deliver(0, stamp(w0 + 10), t0 + ms(110), w0 + 110);
+        // Caught up from 200 ms on; 300 ms later the stream has run on by 300 ms.
         assert_eq!(
-            sorted(o.watermark(0, 10, -1001, t1)),
-            Some((t1, ab.clone()))
+            o.report(0, 10, -1001, t0 + ms(200)).unwrap().1,
+            Vec::<String>::new()
         );
-        // Older statistics never move it back.
+        let (at, mut scenes) = o.report(0, 10, -1001, t0 + ms(500)).unwrap();
+        scenes.sort();
+        assert_eq!((at, scenes), (w0 + 310, vec!["a".into(), "b".into()]));
+        assert_eq!(clock.millis(), w0 + 310);
+        // Unknown high watermark (-1): not caught up.
+        assert_eq!(o.report(1, -1, -1, t0 + ms(600)), Some((0, vec![])));
+        o.deliver(1, stamp(w0), t0, w0);
+        let mut moved = o.stuck(t0 + ms(1_000));
+        moved.sort();
+        assert_eq!(moved, ["a", "b", "c"]);
+        assert_eq!(o.clock(1).unwrap().millis(), w0 + 1_000);
         assert_eq!(
-            sorted(o.watermark(0, 10, -1001, start)),
-            Some((t1, ab.clone()))
+            clock.millis(),
+            w0 + 10 + 890,
+            "by the quiet since the last delivery"
         );
-        assert_eq!(o.read_until(0), Some(t1));
-        // More written since: it stays until those are read.
-        assert_eq!(o.watermark(0, 12, 10, t1 + ms(100)), None);
-        assert_eq!(o.read_until(0), Some(t1));
-        // Nothing to read (the committed offset is the high watermark); unknown (-1): no move.
-        assert_eq!(o.watermark(1, 40, 40, t1), Some((t1, vec!["c".into()])));
-        assert_eq!(o.watermark(1, -1, -1, t1 + ms(50)), None);
-        let mut released = o.release_all();
-        released.sort();
-        assert_eq!(released, ["a", "b", "c"]);
-        assert_eq!((o.read_until(0), o.read_until(1)), (None, None));
-        assert!(o.release_all().is_empty());
-        o.consumed(0, 10);
-        o.consumed(0, 11);
-        let t2 = t1 + ms(200);
-        assert_eq!(sorted(o.watermark(0, 12, 10, t2)), Some((t2, ab)));
-        // Revoked and assigned again: from the new assignment.
+        // Revoked and assigned again: a new stream time.
         o.revoke(1);
         o.assign(1);
-        assert!(o.read_until(1).is_some_and(|t| t >= start));
+        assert_eq!(o.clock(1).unwrap().millis(), 0);
     }
 }
