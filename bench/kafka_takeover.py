@@ -11,6 +11,11 @@ partitioner), and one of two cases:
 * `--case rolling`: a rolling restart from --kill-at on: replica A gets SIGTERM, once it has
   exited it is started again (as `a2`) and, once that one's /readyz says it joined the group,
   the same for B (as `b2`). --restart-at is not used.
+* `--case scale`: replica A alone at first; B and C start at --kill-at (1 -> 3 replicas) and
+  get SIGTERM at --restart-at (3 -> 1).
+* `--case camera`: two replicas; the last camera of every scene stops sending at --kill-at
+  (for good): reports, per scene, the time from that camera's last batch written to the first
+  partial result (missing it) written.
 
 `--group-protocol classic|consumer` (default classic) is passed to every replica as
 `--kafka-group-protocol`; `--static-membership` gives each replica slot a static member id
@@ -209,7 +214,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--crossview", required=True)
     ap.add_argument("--broker-sh", default=BROKER_SH, help="scripts/kafka/broker.sh")
-    ap.add_argument("--case", choices=["kill", "rolling"], default="kill")
+    ap.add_argument("--case", choices=["kill", "rolling", "scale", "camera"], default="kill")
     ap.add_argument("--group-protocol", choices=["classic", "consumer"], default="classic",
                     help="--kafka-group-protocol of the replicas")
     ap.add_argument("--static-membership", action="store_true",
@@ -248,13 +253,19 @@ def main():
         for t, n in (("batches", 8), ("results", 1), ("dead", 1)):
             create_topic(a.broker_sh, broker, t, n)
         ra = Replica(a, broker, models, "a", "a")
-        rb = Replica(a, broker, models, "b", "b")
-        procs += [ra.proc, rb.proc]
-        ready_a, ready_b = ra.wait_ready(), rb.wait_ready()
+        procs.append(ra.proc)
+        group = [ra]
+        if a.case != "scale":
+            rb = Replica(a, broker, models, "b", "b")
+            procs.append(rb.proc)
+            group.append(rb)
+        ready_a = ra.wait_ready()
+        ready_b = rb.wait_ready() if a.case != "scale" else 0.0
         t = time.time()
-        while len(owned(ra.port) | owned(rb.port)) < 8 and time.time() - t < 60:
+        while len(set().union(*(owned(r.port) for r in group))) < 8 and time.time() - t < 60:
             time.sleep(0.1)
         settle = time.time() - ra.started
+        extra = []
 
         acked, failed = [], [0]
 
@@ -296,17 +307,27 @@ def main():
                 killed_at = time.time()
                 if a.case == "kill":
                     ra.proc.send_signal(signal.SIGKILL)
-                else:
+                elif a.case == "rolling":
                     roller = threading.Thread(target=rolling_restart, daemon=True,
                                               args=(a, broker, models, [ra, rb], procs, steps))
                     roller.start()
-            if a.case == "kill" and restarted_at is None and now >= a.restart_at:
-                ra2 = Replica(a, broker, models, "a2", "a")
-                procs.append(ra2.proc)
+                elif a.case == "scale":
+                    extra = [Replica(a, broker, models, n, n) for n in ("b", "c")]
+                    procs += [r.proc for r in extra]
+            if a.case in ("kill", "scale") and restarted_at is None and now >= a.restart_at:
+                if a.case == "kill":
+                    ra2 = Replica(a, broker, models, "a2", "a")
+                    procs.append(ra2.proc)
+                else:
+                    for r in extra:
+                        r.proc.send_signal(signal.SIGTERM)
                 restarted_at = time.time()
             at, body = events[i]
             if at > now:
                 p.poll(min(at - now, 0.005))
+                continue
+            if a.case == "camera" and at >= a.kill_at and json.loads(body)["camera"] == cameras[-1]:
+                i += 1
                 continue
             for n in names:
                 p.produce("batches", key=n, value=body, on_delivery=on_delivery)
@@ -420,6 +441,20 @@ def main():
         rolling.append(step)
     if a.case == "rolling":
         takeover = max((x["handover_s"] for x in rolling), default=0.0)
+    if a.case in ("scale", "camera"):
+        takeover = 0.0
+    # Case camera: per scene, from the stopped camera's last batch written to the first result
+    # missing it.
+    stopped_to_partial = []
+    if a.case == "camera":
+        gone = cameras[-1]
+        for s_ in names:
+            last = max((t for (sc, c_, _), t in created.items() if sc == s_ and c_ == gone),
+                       default=None)
+            first = min((r["ts"] for r in results if r["scene"] == s_ and gone in r["missing"]),
+                        default=None)
+            if last is not None and first is not None:
+                stopped_to_partial.append(round(first - last, 3))
 
     def max_gap(scenes, start, end):
         worst = 0.0
@@ -439,8 +474,27 @@ def main():
         if r["missing"]:
             phase = phase_of(r["ts"])
             partial_when[phase] = partial_when.get(phase, 0) + 1
+    # End to end: from the frame's last camera batch written (its create time) to the first
+    # result of the frame written to the output topic (its create time), complete frames only.
+    last_sent = {}
+    for (s_, c_, f_), t in created.items():
+        last_sent[(s_, f_)] = max(last_sent.get((s_, f_), t), t)
+    first_result = {}
+    for r in results:
+        if not r["missing"]:
+            k = (r["scene"], r["frame"])
+            first_result[k] = min(first_result.get(k, r["ts"]), r["ts"])
+    e2e = sorted(first_result[k] - last_sent[k] for k in first_result if k in last_sent)
+    # The same before the first kill / stop / start (steady state, two replicas).
+    e2e_steady = sorted(first_result[k] - last_sent[k] for k in first_result
+                        if k in last_sent and first_result[k] < killed_at)
+
+    def pct(xs, q):
+        return round(xs[min(len(xs) - 1, int(q * len(xs)))] * 1000, 1) if xs else None
     report = {
         "run": a.run, "case": a.case, "group_protocol": a.group_protocol,
+        "e2e_ms_p50_p99": [pct(e2e, 0.5), pct(e2e, 0.99)],
+        "e2e_ms_p50_p99_before_the_event": [pct(e2e_steady, 0.5), pct(e2e_steady, 0.99)],
         "static_membership": a.static_membership,
         "frames_sent": len(frames_sent), "batches_sent": len(acked),
         "batches_not_acked": failed[0], "results": len(results), "partial_results": partial,
@@ -451,6 +505,12 @@ def main():
         report["survivor_max_stall_s"] = round(max_gap(b_scenes, killed_at, sent_end), 2)
         report["max_stall_any_scene_after_restart_s"] = round(
             max_gap(a_scenes | b_scenes, restarted_at, sent_end), 2)
+    elif a.case == "scale":
+        report["max_stall_any_scene_scaling_s"] = round(
+            max_gap(set(names), killed_at, sent_end), 2)
+    elif a.case == "camera":
+        report["stopped_camera_to_partial_s"] = sorted(stopped_to_partial)
+        report["max_stall_any_scene_s"] = round(max_gap(set(names), t0 + 2, sent_end), 2)
     else:
         report["rolling"] = rolling
         report["max_stall_any_scene_rolling_s"] = round(

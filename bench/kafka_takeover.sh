@@ -5,13 +5,15 @@
 # (one node, scripts/kafka/broker.sh, in a temporary folder) and fresh replicas. CASE=kill: one
 # replica killed with SIGKILL at KILL_AT and restarted at RESTART_AT; CASE=rolling: a rolling
 # restart from KILL_AT on (SIGTERM a replica, start it again once it has exited, wait for its
-# /readyz, then the other). Prints one JSON line per run (also in $OUT/runN.json): camera
+# /readyz, then the other); CASE=scale: one replica, two more start at KILL_AT and stop
+# (SIGTERM) at RESTART_AT; CASE=camera: every scene's last camera stops sending at KILL_AT
+# (time to the first partial frame). Prints one JSON line per run (also in $OUT/runN.json): camera
 # batches lost, frames lost, takeover time, stalls, duplicates (with producer id / epoch),
 # and for CASE=rolling each step's stop, ready and handover times.
 #
 # Usage: bash bench/kafka_takeover.sh
 # Env:   CROSSVIEW_BIN (target/release/crossview)  OUT (/var/tmp/crossview-kafka-takeover)
-#        RUNS (5)  CASE (kill|rolling)  SECONDS_ (45; rolling: 60)  KILL_AT (10)  RESTART_AT (25)
+#        RUNS (5)  CASE (kill|rolling|scale|camera)  SECONDS_ (45; rolling: 60)  KILL_AT (10)  RESTART_AT (25)
 #        GROUP_PROTOCOL (classic|consumer: the replicas' --kafka-group-protocol; classic)
 #        STATIC=1 (static membership: --kafka-instance-id per replica, kept by its restart)
 #        REPLICA_ARGS (extra `crossview serve` flags, e.g. "--sync-timeout 1s")
@@ -29,7 +31,8 @@ export ORT_DYLIB_PATH=${ORT_DYLIB_PATH:-$PWD/.cache/onnxruntime/libonnxruntime.s
 case $CASE in
   kill) seconds=${SECONDS_:-45} ;;
   rolling) seconds=${SECONDS_:-60} ;;
-  *) echo "CASE must be kill or rolling, got '$CASE'" >&2; exit 2 ;;
+  scale|camera) seconds=${SECONDS_:-45} ;;
+  *) echo "CASE must be kill, rolling, scale or camera, got '$CASE'" >&2; exit 2 ;;
 esac
 case $GROUP_PROTOCOL in
   classic|consumer) ;;

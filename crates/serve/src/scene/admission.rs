@@ -40,6 +40,13 @@ impl Scene {
         for e in emitted {
             self.metrics.frame(self.name(), e.complete());
             if !e.complete() {
+                tracing::debug!(
+                    scene = self.name(),
+                    frame = e.frame.frame_id,
+                    reason = ?e.reason,
+                    waited = ?e.waited,
+                    "partial frame"
+                );
                 self.metrics
                     .partial(self.name(), partial_cause(e.reason, timed_out));
             }

@@ -525,8 +525,9 @@ impl Scene {
     }
 
     /// Graceful shutdown of this scene: refuses new work, flushes pending frames as partial
-    /// results, lets the worker finish its queue and publish them, then closes the broadcast
-    /// so subscriber streams end. Blocking (joins the worker thread).
+    /// results (a scene on a Kafka partition's stream time leaves them to the partition's next
+    /// owner instead), lets the worker finish its queue and publish it, then closes the
+    /// broadcast so subscriber streams end. Blocking (joins the worker thread).
     ///
     /// With `deadline`, frames still queued after it are published with an error instead of
     /// being associated, so shutdown ends within about one frame's cost of it.
@@ -535,11 +536,24 @@ impl Scene {
         self.closed.store(true, Ordering::Release);
         {
             let mut intake = lock(&self.intake);
-            let emitted = intake.sync.flush();
-            let n = emitted.len();
-            self.enqueue(&mut intake, emitted, Instant::now(), PartialCause::Timeout);
+            if intake.timebase.is_stream() {
+                // Fed by a Kafka partition: its incomplete frames are not cut here but left to
+                // the partition's next owner, which re-reads their batches (their offsets are
+                // never committed) and forms them whole.
+                let last = intake.sync.last_emitted();
+                let left = intake.sync.restart(last);
+                tracing::info!(
+                    scene = self.name(),
+                    left,
+                    "scene intake closed; incomplete frames left to the partition's next owner"
+                );
+            } else {
+                let emitted = intake.sync.flush();
+                let n = emitted.len();
+                self.enqueue(&mut intake, emitted, Instant::now(), PartialCause::Timeout);
+                tracing::info!(scene = self.name(), flushed = n, "scene intake closed");
+            }
             intake.jobs = None;
-            tracing::info!(scene = self.name(), flushed = n, "scene intake closed");
         }
         if let Some(h) = lock(&self.worker).take()
             && h.join().is_err()

@@ -20,6 +20,8 @@ pub(super) struct Context {
     pub(super) metrics: Metrics,
     pub(super) service: Arc<Service>,
     pub(super) stats_clock: Mutex<StatsClock>,
+    /// Per broker, the fetch requests sent as of the previous statistics.
+    pub(super) fetches: Mutex<std::collections::HashMap<String, i64>>,
 }
 
 /// When librdkafka emitted a statistics report, on this process's clock: its `ts` is
@@ -70,6 +72,11 @@ impl ClientContext for Context {
         }
         let mut moved = Vec::new();
         let wall = now_ms();
+        // Caught up needs a group at rest (during a rebalance's rounds the fetchers of the
+        // partitions kept stop) and fresh high watermarks: they come with fetch responses,
+        // which stop too around a rebalance, a slow broker or a failover.
+        let steady = stats.cgrp.as_ref().is_none_or(|g| g.join_state == "steady");
+        let fresh = self.fetched_since_last(&stats);
         {
             let mut owned = lock(&self.offsets);
             for (p, part) in &t.partitions {
@@ -80,7 +87,13 @@ impl ClientContext for Context {
                     self.metrics.kafka_lag(&self.topic, *p, part.consumer_lag);
                 }
                 let read = part.committed_offset.max(part.app_offset);
-                if let Some((ms, scenes)) = owned.report(*p, part.hi_offset, read, at) {
+                // Nothing fetched and not yet handed over, the fetcher running.
+                let fetching = steady
+                    && fresh.contains(p)
+                    && part.fetchq_cnt == 0
+                    && part.fetch_state == "active";
+                let high = if fetching { part.hi_offset } else { -1 };
+                if let Some((ms, scenes)) = owned.report(*p, high, read, at) {
                     if ms > 0 {
                         self.metrics.kafka_stream_time(&self.topic, *p, ms, wall);
                     }
@@ -123,6 +136,27 @@ impl ConsumerContext for Context {
 }
 
 impl Context {
+    /// The input partitions whose broker answered a fetch since the previous statistics: its
+    /// count of fetch requests sent grew by two or more (librdkafka keeps one fetch in flight
+    /// per broker, so the first was answered). Their high watermarks are fresh.
+    fn fetched_since_last(&self, stats: &Statistics) -> std::collections::HashSet<i32> {
+        let mut fresh = std::collections::HashSet::new();
+        let mut last = lock(&self.fetches);
+        for b in stats.brokers.values() {
+            let sent = b.req.get("Fetch").copied().unwrap_or(0);
+            let before = last.insert(b.name.clone(), sent).unwrap_or(i64::MAX);
+            if sent >= before.saturating_add(2) {
+                fresh.extend(
+                    b.toppars
+                        .values()
+                        .filter(|tp| tp.topic == self.topic)
+                        .map(|tp| tp.partition),
+                );
+            }
+        }
+        fresh
+    }
+
     /// Partitions leave: commit what is done, then forget them, drop the pending frames of
     /// their scenes (never published here: the next owner re-reads them) and their lag.
     fn revoke(&self, consumer: &BaseConsumer<Self>, list: &TopicPartitionList) {

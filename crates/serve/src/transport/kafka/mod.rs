@@ -75,6 +75,7 @@ pub fn start(service: Arc<Service>, config: KafkaConfig) -> Result<tokio::task::
         metrics,
         service: service.clone(),
         stats_clock: Default::default(),
+        fetches: Default::default(),
     };
     let consumer: StreamConsumer<Context> =
         config

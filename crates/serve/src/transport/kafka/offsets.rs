@@ -139,9 +139,10 @@ impl Ownership {
     }
 
     /// The consumer's statistics for owned `partition`, emitted at `at`: the broker's high
-    /// watermark `high` and where librdkafka has the consumer (its committed or application
-    /// offset, whichever is further; negative: unknown). Caught up when everything below
-    /// `high` was read ([`PartitionTime::report`]). Returns the stream time, and the scenes on
+    /// watermark `high` (negative: unknown, or not to be trusted now) and where librdkafka
+    /// has the consumer (its committed or application offset, whichever is further;
+    /// negative: unknown). Caught up when everything below `high` was read
+    /// ([`PartitionTime::report`]). Returns the stream time, and the scenes on
     /// the partition when it moved; `None` when not owned.
     pub(super) fn report(
         &mut self,
