@@ -17,7 +17,7 @@ partitioner), and one of two cases:
   (for good): reports, per scene, the time from that camera's last batch written to the first
   partial result (missing it) written.
 
-`--group-protocol classic|consumer` (default classic) is passed to every replica as
+`--group-protocol classic|consumer` (default consumer) is passed to every replica as
 `--kafka-group-protocol`; `--static-membership` gives each replica slot a static member id
 (`--kafka-instance-id replica-a`, `replica-b`) that its restarted process keeps.
 Afterwards every topic is read from the beginning with an independent client, and the run
@@ -215,7 +215,7 @@ def main():
     ap.add_argument("--crossview", required=True)
     ap.add_argument("--broker-sh", default=BROKER_SH, help="scripts/kafka/broker.sh")
     ap.add_argument("--case", choices=["kill", "rolling", "scale", "camera"], default="kill")
-    ap.add_argument("--group-protocol", choices=["classic", "consumer"], default="classic",
+    ap.add_argument("--group-protocol", choices=["classic", "consumer"], default="consumer",
                     help="--kafka-group-protocol of the replicas")
     ap.add_argument("--static-membership", action="store_true",
                     help="--kafka-instance-id per replica slot (kept across its restart)")

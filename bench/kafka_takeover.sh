@@ -14,7 +14,7 @@
 # Usage: bash bench/kafka_takeover.sh
 # Env:   CROSSVIEW_BIN (target/release/crossview)  OUT (/var/tmp/crossview-kafka-takeover)
 #        RUNS (5)  CASE (kill|rolling|scale|camera)  SECONDS_ (45; rolling: 60)  KILL_AT (10)  RESTART_AT (25)
-#        GROUP_PROTOCOL (classic|consumer: the replicas' --kafka-group-protocol; classic)
+#        GROUP_PROTOCOL (classic|consumer: the replicas' --kafka-group-protocol; consumer)
 #        STATIC=1 (static membership: --kafka-instance-id per replica, kept by its restart)
 #        REPLICA_ARGS (extra `crossview serve` flags, e.g. "--sync-timeout 1s")
 #        KAFKA_HEAP (the broker's heap, 384m)
@@ -26,7 +26,7 @@ CROSSVIEW_BIN=${CROSSVIEW_BIN:-target/release/crossview}
 OUT=${OUT:-/var/tmp/crossview-kafka-takeover}
 RUNS=${RUNS:-5}
 CASE=${CASE:-kill}
-GROUP_PROTOCOL=${GROUP_PROTOCOL:-classic}
+GROUP_PROTOCOL=${GROUP_PROTOCOL:-consumer}
 export ORT_DYLIB_PATH=${ORT_DYLIB_PATH:-$PWD/.cache/onnxruntime/libonnxruntime.so.1.31.1}
 case $CASE in
   kill) seconds=${SECONDS_:-45} ;;

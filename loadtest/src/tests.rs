@@ -270,7 +270,7 @@ async fn fake_replica(broker: String, swallow: HashSet<u64>) {
     }
 }
 
-/// Kafka transport through a real Kafka-protocol broker (tansu, `make setup`): batches keyed
+/// Kafka transport through a real Apache Kafka broker (`make setup`): batches keyed
 /// by scene in both encodings, results read back from the output topic; a frame the replica
 /// never publishes is reported lost.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

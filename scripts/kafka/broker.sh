@@ -77,8 +77,15 @@ PROPS
   fi
 }
 
+# A cluster id: a base64url UUID, never one starting with "-" (the tool would take it for a flag).
 uuid() {
-  python3 -c 'import base64,uuid; print(base64.urlsafe_b64encode(uuid.uuid4().bytes).decode().rstrip("="))'
+  python3 -c '
+import base64, uuid
+while True:
+    s = base64.urlsafe_b64encode(uuid.uuid4().bytes).decode().rstrip("=")
+    if not s.startswith("-"):
+        print(s)
+        break'
 }
 
 run() {

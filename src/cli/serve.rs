@@ -204,13 +204,14 @@ pub struct KafkaArgs {
     /// Kafka consumer group the replicas share (each owns whole scenes).
     #[arg(long, env = "CROSSVIEW_KAFKA_GROUP")]
     pub kafka_group: Option<String>,
-    /// The group's rebalance protocol: `classic` (members assign, cooperative-sticky; session
-    /// 6 s and heartbeat 500 ms set here) or `consumer` (KIP-848: the broker assigns; session
-    /// and heartbeat are the broker's or the group's settings). docs/kafka.md "Rebalances".
+    /// The group's rebalance protocol: `consumer` (KIP-848, Apache Kafka 4.0 and later: the
+    /// broker assigns; session and heartbeat are the broker's or the group's settings) or
+    /// `classic` (any broker: members assign, cooperative-sticky; session 6 s and heartbeat
+    /// 500 ms set here). docs/kafka.md "Rebalances".
     #[arg(
         long,
         env = "CROSSVIEW_KAFKA_GROUP_PROTOCOL",
-        default_value = "classic"
+        default_value = "consumer"
     )]
     pub kafka_group_protocol: GroupProtocol,
     /// Static membership (`group.instance.id`): a name unique to this replica that stays the

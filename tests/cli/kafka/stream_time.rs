@@ -1,7 +1,7 @@
-//! A frame waits on the stream, not the wall clock (docs/kafka.md, "Stream time"), with the
-//! default `--sync-timeout` (200 ms): a replica whose delivery stops for 2 s in the middle of
-//! frames (the whole process stopped, as a long pause or a starved machine does) cuts none
-//! of them; a camera that really stops still yields partial frames, each missing only that
+//! A frame waits on the stream, not the wall clock (docs/kafka.md, "Stream time"), with
+//! `--sync-timeout 1s` ([`super::rebalance::SYNC_TIMEOUT`]): a replica whose delivery stops
+//! for 2 s in the middle of frames (the whole process stopped, as a long pause or a starved
+//! machine does) cuts none of them; a camera that really stops still yields partial frames, each missing only that
 //! camera, cut by the stream moving on and, at the end, by the quiet; producers whose clocks
 //! run 5 s ahead or behind cut nothing. Every camera batch sent is accounted for in the output
 //! topic read from the beginning.
@@ -31,7 +31,7 @@ async fn a_replica_stopped_for_two_seconds_mid_frame_cuts_no_frame() {
         Duration::from_millis(25),
         Capture::live(25),
     );
-    // Stopped 1 s in (frames half sent), for 2 s: ten times the sync timeout.
+    // Stopped 1 s in (frames half sent), for 2 s: twice the sync timeout.
     tokio::time::sleep(Duration::from_millis(1_030)).await;
     signal(&a, "STOP");
     tokio::time::sleep(Duration::from_secs(2)).await;
@@ -54,14 +54,14 @@ async fn a_replica_stopped_for_two_seconds_mid_frame_cuts_no_frame() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn a_camera_that_stops_still_yields_partial_frames() {
-    let Some((s, scenes)) = rebalance_setup(40) else {
+    let Some((s, scenes)) = rebalance_setup(60) else {
         return;
     };
     let scenes = scenes[..2].to_vec();
     let (_a, base) = serve(s.bin, &replica_args(&s, &scenes, "a")).await;
     let p = producer(s.broker);
     let mut results = Results::new(s.broker, &s.topics.results);
-    // cam3 stops after frame 19; the others go on to frame 39.
+    // cam3 stops after frame 19; the others go on to frame 59.
     let lines: Vec<Line> = s
         .lines
         .iter()
@@ -73,7 +73,7 @@ async fn a_camera_that_stops_still_yields_partial_frames() {
         &s.topics.batches,
         &lines,
         &scenes,
-        0..40,
+        0..60,
         Duration::from_millis(25),
         Capture::live(25),
     )
@@ -81,7 +81,7 @@ async fn a_camera_that_stops_still_yields_partial_frames() {
     results.wait_cover(&sent).await;
     let by_frame = results.covered();
     for scene in &scenes {
-        for f in 0..40u64 {
+        for f in 0..60u64 {
             let cams = &by_frame[&(scene.clone(), f)];
             let want: BTreeSet<String> = SQUARE4
                 .iter()
@@ -103,11 +103,11 @@ async fn a_camera_that_stops_still_yields_partial_frames() {
             &m,
             &format!("crossview_frames_partial_total{{scene=\"{scene}\",cause=\"idle\"}}"),
         );
-        // Frames 20..39: all but the last one or two are cut by the stream moving on; those
-        // the stream never passed are cut by the quiet at the end.
-        assert_eq!(moved_on + idle, 20.0, "{scene}: {m}");
+        // Frames 20..59: those the stream moved 1 s past (to about 49) are cut by it; the
+        // last ones, which it never passed, by the quiet at the end.
+        assert_eq!(moved_on + idle, 40.0, "{scene}: {m}");
         assert!(
-            moved_on >= 17.0,
+            moved_on >= 25.0,
             "{scene}: {moved_on} cut by the stream: {m}"
         );
         assert!(

@@ -178,15 +178,18 @@ pub const CLASSIC_DEFAULTS: &[(&str, &str)] = &[
     ("heartbeat.interval.ms", "500"),
 ];
 
-/// A consumer group's rebalance protocol (librdkafka `group.protocol`).
+/// A consumer group's rebalance protocol (librdkafka `group.protocol`). The default is
+/// `consumer`, chosen by measurement on Apache Kafka 4.1.1 (docs/kafka.md, "Rebalances"): a
+/// rolling restart stalls no scene more than 0.43 s with it, 0.94–1.64 s with `classic`,
+/// whose rebalance rounds stop the fetchers of the partitions a replica keeps.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub enum GroupProtocol {
     /// The classic protocol: the members assign (cooperative-sticky here), session and
-    /// heartbeat set by each client ([`CLASSIC_DEFAULTS`]).
-    #[default]
+    /// heartbeat set by each client ([`CLASSIC_DEFAULTS`]). For brokers without KIP-848.
     Classic,
     /// KIP-848: the broker assigns incrementally and sticky; session and heartbeat are the
-    /// broker's (`group.consumer.*`) or the group's settings.
+    /// broker's (`group.consumer.*`) or the group's settings. Apache Kafka 4.0 and later.
+    #[default]
     Consumer,
 }
 
@@ -268,6 +271,8 @@ mod tests {
     #[test]
     fn each_group_protocol_gets_its_own_settings() {
         let mut k = KafkaConfig::new("b:9092", "in", "out", "g");
+        assert_eq!(k.group_protocol, GroupProtocol::Consumer, "the default");
+        k.group_protocol = GroupProtocol::Classic;
         let c = k.consumer_config();
         assert_eq!(c.get("group.protocol"), Some("classic"));
         assert_eq!(c.get("session.timeout.ms"), Some("6000"));
