@@ -5,7 +5,8 @@
 # may use short sessions with both group protocols (classic and KIP-848 `consumer`).
 #
 #   broker.sh run DIR [PORT] [--parent PID]  format DIR if new, run the broker in the foreground on
-#                                            127.0.0.1:PORT (0 or none: a free port); with
+#                                            127.0.0.1:PORT (0 or none: a free port; DIR run
+#                                            before keeps its data and controller port); with
 #                                            --parent, stop when process PID is gone
 #   broker.sh start DIR [PORT]               the same in the background; waits until it is ready
 #                                            and prints its bootstrap address (host:port)
@@ -34,7 +35,9 @@ free_port() {
 # Writes DIR/server.properties for PORT (and a controller port of its own), formats DIR/data once.
 configure() {
   local dir=$1 port=$2 cport
-  cport=$(free_port)
+  # A restart on the same folder keeps its controller port (the quorum's address).
+  cport=$(sed -n 's/^controller.quorum.voters=1@127.0.0.1:\([0-9]*\)$/\1/p' "$dir/server.properties" 2>/dev/null || true)
+  [[ -n $cport ]] || cport=$(free_port)
   mkdir -p "$dir/data"
   cat > "$dir/server.properties" <<PROPS
 process.roles=broker,controller

@@ -16,12 +16,13 @@ use crate::{ChildGuard, repo_root, skip};
 /// How long a broker may take to start (a JVM on a loaded 2-core machine).
 const START_GUARD: Duration = Duration::from_secs(120);
 
-/// A running broker.
+/// A broker (running unless [`Broker::stopped`] or [`Broker::kill`]).
 pub struct Broker {
     /// `127.0.0.1:<port>`, for `bootstrap.servers`.
     pub addr: String,
     dir: tempfile::TempDir,
-    runner: ChildGuard,
+    script: PathBuf,
+    runner: Option<ChildGuard>,
 }
 
 /// Topics of one test on a shared broker: fresh names, created with their partitions.
@@ -58,31 +59,51 @@ impl Broker {
     /// Starts a broker of the caller's own and waits until it is ready; `None` (after
     /// [`skip`], which fails under `CI=true`) without the jars.
     pub fn start() -> Option<Broker> {
+        let mut broker = Broker::stopped()?;
+        broker.restart();
+        Some(broker)
+    }
+
+    /// A broker of the caller's own with its address chosen (a free port) but not started
+    /// yet: for a client that starts before its broker. [`restart`](Self::restart) starts it.
+    pub fn stopped() -> Option<Broker> {
         let script = script()?;
         let dir = tempfile::Builder::new()
             .prefix("crossview-kafka-")
             .tempdir()
             .expect("broker folder");
-        let runner = ChildGuard(
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .expect("free port")
+            .port();
+        Some(Broker {
+            addr: format!("127.0.0.1:{port}"),
+            dir,
+            script,
+            runner: None,
+        })
+    }
+
+    /// (Re)starts the broker on its address and storage (what it held before is kept) and
+    /// waits until it is ready.
+    pub fn restart(&mut self) {
+        self.kill();
+        let port = self.addr.rsplit(':').next().unwrap_or("0").to_string();
+        let _ = std::fs::remove_file(self.dir.path().join("broker.log"));
+        self.runner = Some(ChildGuard(
             std::process::Command::new("bash")
-                .arg(&script)
+                .arg(&self.script)
                 .arg("run")
-                .arg(dir.path())
-                .arg("0")
+                .arg(self.dir.path())
+                .arg(port)
                 .arg("--parent")
                 .arg(std::process::id().to_string())
                 .stdin(std::process::Stdio::null())
                 .stdout(std::process::Stdio::null())
                 .spawn()
                 .expect("start the Kafka broker script"),
-        );
-        let mut broker = Broker {
-            addr: String::new(),
-            dir,
-            runner,
-        };
-        broker.addr = broker.wait_ready();
-        Some(broker)
+        ));
+        self.addr = self.wait_ready();
     }
 
     /// The test binary's shared broker, started by the first caller; `None` as for
@@ -112,7 +133,7 @@ impl Broker {
                     return addr;
                 }
             }
-            if let Ok(Some(status)) = self.runner.0.try_wait() {
+            if let Some(Ok(Some(status))) = self.runner.as_mut().map(|r| r.0.try_wait()) {
                 panic!(
                     "the Kafka broker exited ({status}): {}",
                     tail(&log).unwrap_or_default()
@@ -178,15 +199,19 @@ impl Broker {
         self.dir.path()
     }
 
-    /// Stops the broker at once (SIGKILL: a crash).
+    /// Stops the broker at once (SIGKILL: a crash); [`restart`](Self::restart) brings it back
+    /// with what it held.
     pub fn kill(&mut self) {
         if let Ok(pid) = std::fs::read_to_string(self.dir.path().join("pid")) {
             let _ = std::process::Command::new("kill")
                 .args(["-9", pid.trim()])
                 .status();
+            let _ = std::fs::remove_file(self.dir.path().join("pid"));
         }
-        let _ = self.runner.0.kill();
-        let _ = self.runner.0.wait();
+        if let Some(mut r) = self.runner.take() {
+            let _ = r.0.kill();
+            let _ = r.0.wait();
+        }
     }
 }
 

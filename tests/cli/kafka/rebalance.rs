@@ -65,17 +65,24 @@ pub(super) async fn stream(
     sent
 }
 
-/// Streams in the background; the task returns what it sent.
-pub(super) fn stream_in_background(
-    p: Arc<FutureProducer>,
-    topic: String,
-    lines: Vec<Line>,
-    scenes: Vec<String>,
+/// Streams frames `frames` of `scenes` live, in the background: each frame's 4 cameras 25 ms
+/// apart, each batch stamped with its camera's capture time. The task returns what it sent.
+pub(super) fn stream_live(
+    s: &Setup,
+    p: &Arc<FutureProducer>,
+    scenes: &[String],
     frames: std::ops::Range<u64>,
-    gap: Duration,
-    capture: Capture,
 ) -> tokio::task::JoinHandle<Vec<Sent>> {
-    tokio::spawn(async move { stream(&p, &topic, &lines, &scenes, frames, gap, capture).await })
+    let (p, topic, lines, scenes) = (
+        p.clone(),
+        s.topics.batches.clone(),
+        s.lines.clone(),
+        scenes.to_vec(),
+    );
+    let gap = Duration::from_millis(25);
+    tokio::spawn(async move {
+        stream(&p, &topic, &lines, &scenes, frames, gap, Capture::live(25)).await
+    })
 }
 
 /// The replicas' `--sync-timeout` in these tests: 1 s. Stream time makes a rebalance, a pause
@@ -178,15 +185,7 @@ async fn joining_mid_frame(protocol: &str) {
     let mut results = Results::new(s.broker, &s.topics.results);
     // 60 frames, each one's 4 cameras over 100 ms; B joins 1 s in, so the group rebalances
     // while frames are half sent.
-    let streaming = stream_in_background(
-        p.clone(),
-        s.topics.batches.clone(),
-        s.lines.clone(),
-        scenes.clone(),
-        0..60,
-        Duration::from_millis(25),
-        Capture::live(25),
-    );
+    let streaming = stream_live(&s, &p, &scenes, 0..60);
     tokio::time::sleep(Duration::from_secs(1)).await;
     let (_b, _) = serve(s.bin, &args("b")).await;
     let sent = streaming.await.unwrap();
@@ -210,15 +209,7 @@ async fn a_replica_killed_and_restarted_mid_stream_loses_no_camera_batch() {
     // 200 frames over about 20 s; A is killed 2 s in and comes back (as a2) 16 s in, well
     // after B took its scenes over (about 6 s session timeout plus the broker's rebalance
     // delay after the kill; more on a loaded machine).
-    let streaming = stream_in_background(
-        p.clone(),
-        s.topics.batches.clone(),
-        s.lines.clone(),
-        scenes.clone(),
-        0..200,
-        Duration::from_millis(25),
-        Capture::live(25),
-    );
+    let streaming = stream_live(&s, &p, &scenes, 0..200);
     tokio::time::sleep(Duration::from_secs(2)).await;
     signal(&a, "KILL");
     let _ = a.wait();

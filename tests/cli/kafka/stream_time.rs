@@ -10,7 +10,7 @@ use std::collections::BTreeSet;
 use std::sync::Arc;
 use std::time::Duration;
 
-use super::rebalance::{check_exact, rebalance_setup, replica_args, stream, stream_in_background};
+use super::rebalance::{check_exact, rebalance_setup, replica_args, stream, stream_live};
 use super::*;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
@@ -22,15 +22,7 @@ async fn a_replica_stopped_for_two_seconds_mid_frame_cuts_no_frame() {
     let (mut a, base) = serve(s.bin, &replica_args(&s, &scenes, "a")).await;
     let p = Arc::new(producer(s.broker));
     let mut results = Results::new(s.broker, &s.topics.results);
-    let streaming = stream_in_background(
-        p.clone(),
-        s.topics.batches.clone(),
-        s.lines.clone(),
-        scenes.clone(),
-        0..60,
-        Duration::from_millis(25),
-        Capture::live(25),
-    );
+    let streaming = stream_live(&s, &p, &scenes, 0..60);
     // Stopped 1 s in (frames half sent), for 2 s: twice the sync timeout.
     tokio::time::sleep(Duration::from_millis(1_030)).await;
     signal(&a, "STOP");

@@ -180,7 +180,7 @@ pub const CLASSIC_DEFAULTS: &[(&str, &str)] = &[
 
 /// A consumer group's rebalance protocol (librdkafka `group.protocol`). The default is
 /// `consumer`, chosen by measurement on Apache Kafka 4.1.1 (docs/kafka.md, "Rebalances"): a
-/// rolling restart stalls no scene more than 0.43 s with it, 0.94–1.64 s with `classic`,
+/// rolling restart stalls no scene more than 0.65 s with it, 0.94–1.64 s with `classic`,
 /// whose rebalance rounds stop the fetchers of the partitions a replica keeps.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub enum GroupProtocol {

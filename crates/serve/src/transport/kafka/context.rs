@@ -22,6 +22,9 @@ pub(super) struct Context {
     pub(super) stats_clock: Mutex<StatsClock>,
     /// Per broker, the fetch requests sent as of the previous statistics.
     pub(super) fetches: Mutex<std::collections::HashMap<String, i64>>,
+    /// Every broker is down (librdkafka said so): not ready until one is back and the group
+    /// at rest.
+    pub(super) brokers_down: std::sync::atomic::AtomicBool,
 }
 
 /// When librdkafka emitted a statistics report, on this process's clock: its `ts` is
@@ -61,7 +64,25 @@ impl StatsClock {
 }
 
 impl ClientContext for Context {
+    /// Global errors: every broker down turns readiness off (what was read and not produced
+    /// stays uncommitted, and is read again); others are logged.
+    fn error(&self, error: rdkafka::error::KafkaError, reason: &str) {
+        use rdkafka::types::RDKafkaErrorCode;
+        if error.rdkafka_error_code() == Some(RDKafkaErrorCode::AllBrokersDown) {
+            if !self
+                .brokers_down
+                .swap(true, std::sync::atomic::Ordering::AcqRel)
+            {
+                tracing::warn!(%reason, "kafka: every broker is down; not ready until one is back");
+            }
+            self.service.set_consumer_ready(false);
+        } else {
+            tracing::warn!(error = %error, %reason, "kafka: client error");
+        }
+    }
+
     fn stats(&self, stats: Statistics) {
+        self.broker_back(&stats);
         let Some(t) = stats.topics.get(&self.topic) else {
             return;
         };
@@ -136,6 +157,23 @@ impl ConsumerContext for Context {
 }
 
 impl Context {
+    /// After every broker was down: ready again once one is up and the group at rest.
+    fn broker_back(&self, stats: &Statistics) {
+        use std::sync::atomic::Ordering;
+        if !self.brokers_down.load(Ordering::Acquire) {
+            return;
+        }
+        let up = stats.brokers.values().any(|b| b.state == "UP");
+        let steady = stats
+            .cgrp
+            .as_ref()
+            .is_some_and(|g| g.state == "up" && g.join_state == "steady");
+        if up && steady && self.brokers_down.swap(false, Ordering::AcqRel) {
+            tracing::info!("kafka: a broker is back and the group at rest; ready");
+            self.service.set_consumer_ready(true);
+        }
+    }
+
     /// The input partitions whose broker answered a fetch since the previous statistics: its
     /// count of fetch requests sent grew by two or more (librdkafka keeps one fetch in flight
     /// per broker, so the first was answered). Their high watermarks are fresh.

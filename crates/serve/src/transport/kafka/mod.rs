@@ -76,6 +76,7 @@ pub fn start(service: Arc<Service>, config: KafkaConfig) -> Result<tokio::task::
         service: service.clone(),
         stats_clock: Default::default(),
         fetches: Default::default(),
+        brokers_down: Default::default(),
     };
     let consumer: StreamConsumer<Context> =
         config
