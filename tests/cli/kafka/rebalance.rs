@@ -1,4 +1,5 @@
-//! Replicas joining, dying (SIGKILL) and coming back while camera batches stream in, each
+//! Replicas joining, dying (SIGKILL) and coming back, and a rolling restart (SIGTERM each in
+//! turn), while camera batches stream in, each
 //! frame's cameras spread over time (and stamped with their capture times), and while a
 //! replica catches up a backlog; every replica with `--sync-timeout` [`SYNC_TIMEOUT`]. Asserted, by
 //! reading the output and dead-letter topics from the beginning: every camera batch sent is in
@@ -232,6 +233,40 @@ async fn a_replica_killed_and_restarted_mid_stream_loses_no_camera_batch() {
     assert!(
         producers_of(&results, 190..200).contains("a2"),
         "the restarted replica owns scenes again"
+    );
+}
+
+/// A rolling restart while frames stream in: each replica in turn gets SIGTERM (mid-frame: it
+/// leaves its incomplete frames to the next owner instead of cutting them), exits, starts
+/// again and rejoins before the next one goes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_rolling_restart_loses_no_camera_batch() {
+    let Some((s, scenes)) = rebalance_setup(150) else {
+        return;
+    };
+    let (a, _) = serve(s.bin, &replica_args(&s, &scenes, "a")).await;
+    let (b, _) = serve(s.bin, &replica_args(&s, &scenes, "b")).await;
+    let p = Arc::new(producer(s.broker));
+    let mut results = Results::new(s.broker, &s.topics.results);
+    let streaming = stream_live(&s, &p, &scenes, 0..150);
+    tokio::time::sleep(Duration::from_millis(2_030)).await;
+    let mut restarted = Vec::new();
+    for (mut old, id) in [(a, "a2"), (b, "b2")] {
+        signal(&old, "TERM");
+        guard("replica exit", async {
+            while old.try_wait().unwrap().is_none() {
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        })
+        .await;
+        restarted.push(serve(s.bin, &replica_args(&s, &scenes, id)).await);
+    }
+    let sent = streaming.await.unwrap();
+    check_exact(&mut results, &sent, &s).await;
+    let last = producers_of(&results, 140..150);
+    assert!(
+        !last.is_empty() && last.iter().all(|p| p == "a2" || p == "b2"),
+        "after the roll the restarted replicas publish: {last:?}"
     );
 }
 
