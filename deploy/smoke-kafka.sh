@@ -121,4 +121,36 @@ kafka_profile() {
   read -r _ a b <<<"$owned"
   restarts=$(podman inspect -f '{{.RestartCount}}' "${PROJECT}_replica-a_1" 2>/dev/null || echo '?')
   pass "after the takeover all $KAFKA_PARTITIONS partitions are owned (replica-a $a, replica-b $b; replica-a restarted $restarts time(s) by its restart policy)"
+  kafka_rolling_restart "$net"
+}
+
+# A rolling restart through the engine while new scenes are replayed: replica-a back first,
+# then each replica stopped (SIGTERM, `podman stop`) and started again in turn, the next one
+# only once the restarted one is ready. Every frame replayed meanwhile must have a result.
+kafka_rolling_restart() { # kafka_rolling_restart NETWORK
+  local net=$1 replay r port
+  log "rolling restart: each replica stopped (SIGTERM) and started again in turn, $KAFKA_SCENES_ROLL replayed meanwhile"
+  podman start "${PROJECT}_replica-a_1" >/dev/null 2>&1 || true
+  wait_readyz "$CROSSVIEW_REPLICA_A_PORT" replica-a
+  # 100 frames at 8 frames/s: about 12 s, over the whole roll.
+  podman run --rm --network "$net" -v "$WORK/run/data:/data:ro" --entrypoint crossview-replay "$IMAGE" \
+    --transport=kafka --kafka-brokers=broker:9092 --allow-host=broker,replica-b \
+    --target=http://replica-b:8080 --wait-ready=90s --recording /data/replay.jsonl \
+    --scene-names "$KAFKA_SCENES_ROLL" --rate 8 \
+    --frames "$CROSSVIEW_REPLAY_FRAMES" --drain-timeout 60s --json \
+    >"$WORK/logs/kafka-replay-roll.json" 2>"$WORK/logs/kafka-replay-roll.stderr" &
+  replay=$!
+  sleep 3
+  for r in replica-a replica-b; do
+    port=$CROSSVIEW_REPLICA_A_PORT
+    [[ $r == replica-b ]] && port=$CROSSVIEW_REPLICA_B_PORT
+    podman stop -t 30 "${PROJECT}_${r}_1" >/dev/null || fail "podman stop $r"
+    podman start "${PROJECT}_${r}_1" >/dev/null || fail "podman start $r"
+    wait_readyz "$port" "$r"
+  done
+  pass "replica-a and replica-b each stopped with SIGTERM, started again and ready, in turn"
+  wait "$replay" \
+    || { tail -n 40 "$WORK/logs/kafka-replay-roll.json" "$WORK/logs/kafka-replay-roll.stderr" >&2; fail "kafka replay during the rolling restart"; }
+  check_report "$WORK/logs/kafka-replay-roll.json" "kafka replay during the rolling restart"
+  pass "every frame of $KAFKA_SCENES_ROLL, replayed during the rolling restart, has a result"
 }

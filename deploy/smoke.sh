@@ -47,6 +47,7 @@ REPLAY_SCENES=square4-0,square4-1
 KAFKA=${SMOKE_KAFKA:-1}
 KAFKA_SCENES_BEFORE=square4-0,square4-1,square4-2,square4-3
 KAFKA_SCENES_AFTER=$(seq -s, -f 'square4-%g' 4 11)
+KAFKA_SCENES_ROLL=$(seq -s, -f 'square4-%g' 12 19)
 KAFKA_PARTITIONS=8
 HTTP_SCENE=square4-2
 HTTP_FRAMES=5
@@ -169,7 +170,7 @@ make_data() {
 # ---------------------------------------------------------------- 4. compose
 export CROSSVIEW_PORT=$PORT CROSSVIEW_PROMETHEUS_PORT=$PROM_PORT
 export CROSSVIEW_MODELS_DIR=$WORK/run/models CROSSVIEW_REPLAY_DIR=$WORK/run/data
-CROSSVIEW_MODELS=$(for i in $(seq 0 11); do printf 'square4-%d=/models/square4.onnx,' "$i"; done)
+CROSSVIEW_MODELS=$(for i in $(seq 0 19); do printf 'square4-%d=/models/square4.onnx,' "$i"; done)
 export CROSSVIEW_MODELS=${CROSSVIEW_MODELS%,}
 export CROSSVIEW_REPLICA_A_PORT=${SMOKE_REPLICA_A_PORT:-18081} CROSSVIEW_REPLICA_B_PORT=${SMOKE_REPLICA_B_PORT:-18082}
 export CROSSVIEW_KAFKA_PARTITIONS=$KAFKA_PARTITIONS
