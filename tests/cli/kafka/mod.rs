@@ -261,6 +261,18 @@ impl Results {
         }
     }
 
+    /// The results read so far that miss a camera.
+    fn partial(&self) -> Vec<&Value> {
+        self.seen
+            .iter()
+            .filter(|r| {
+                r["missing_cameras"]
+                    .as_array()
+                    .is_some_and(|a| !a.is_empty())
+            })
+            .collect()
+    }
+
     /// (scene, frame) published more than once, with the (producer, epoch) of each copy.
     fn duplicates(&self) -> BTreeMap<(String, u64), Vec<(String, u64)>> {
         let mut all: BTreeMap<(String, u64), Vec<(String, u64)>> = BTreeMap::new();

@@ -27,7 +27,14 @@ pub(super) fn scenes(n: usize) -> Vec<String> {
 }
 
 /// Produces `line` of scene `i` to partition `i` of `topic`, stamped `ts` (ms).
-async fn send_scene(p: &FutureProducer, topic: &str, i: usize, scene: &str, line: &str, ts: i64) {
+pub(super) async fn send_scene(
+    p: &FutureProducer,
+    topic: &str,
+    i: usize,
+    scene: &str,
+    line: &str,
+    ts: i64,
+) {
     let r = FutureRecord::to(topic)
         .partition(i as i32)
         .key(scene)
@@ -105,15 +112,7 @@ pub(super) fn replica_args(s: &Setup, scenes: &[String], id: &str) -> Vec<String
 pub(super) async fn check_exact(results: &mut Results, sent: &[Sent], s: &Setup) -> usize {
     results.wait_cover(sent).await;
     results.read_for(Duration::from_secs(1)).await;
-    let partial: Vec<&Value> = results
-        .seen
-        .iter()
-        .filter(|r| {
-            r["missing_cameras"]
-                .as_array()
-                .is_some_and(|a| !a.is_empty())
-        })
-        .collect();
+    let partial = results.partial();
     assert!(
         partial.is_empty(),
         "{} partial results, e.g. {}",

@@ -10,7 +10,9 @@ use std::collections::BTreeSet;
 use std::sync::Arc;
 use std::time::Duration;
 
-use super::rebalance::{check_exact, rebalance_setup, replica_args, stream, stream_live};
+use super::rebalance::{
+    check_exact, rebalance_setup, replica_args, send_scene, stream, stream_live,
+};
 use super::*;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
@@ -134,14 +136,7 @@ async fn producer_clocks_five_seconds_off_cut_nothing() {
         };
         let ts = capture.stamp(cam, *frame) + skew;
         for (i, scene) in scenes.iter().enumerate() {
-            let r = rdkafka::producer::FutureRecord::to(&s.topics.batches)
-                .partition(i as i32)
-                .key(scene)
-                .payload(line)
-                .timestamp(ts);
-            guard("produce", p.send(r, Duration::from_secs(20)))
-                .await
-                .unwrap();
+            send_scene(&p, &s.topics.batches, i, scene, line, ts).await;
             sent.push((scene.clone(), cam.clone(), *frame));
         }
         tokio::time::sleep(Duration::from_millis(25)).await;

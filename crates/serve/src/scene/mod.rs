@@ -405,14 +405,11 @@ impl Scene {
         intake.timebase.wake_at(deadline)
     }
 
-    /// Runs the scene's sync timeouts on `clock`, a Kafka partition's stream time ([`timebase`]),
-    /// or (`None`) on wall time again. Pending frames are dropped first when the timebase
-    /// changes ([`restart`](Self::restart) is how a transport does that).
-    pub fn follow_stream(&self, clock: Option<StreamClock>) {
-        lock(&self.intake).timebase = match clock {
-            Some(c) => timebase::Timebase::Stream(c),
-            None => timebase::Timebase::Wall,
-        };
+    /// Runs the scene's sync timeouts on `clock`, a Kafka partition's stream time
+    /// ([`timebase`]), until the next [`restart`](Self::restart) (back to wall time), which
+    /// is also how a transport drops the frames pending on the previous timebase first.
+    pub fn follow_stream(&self, clock: StreamClock) {
+        lock(&self.intake).timebase = timebase::Timebase::Stream(clock);
         self.wake.notify_one();
     }
 

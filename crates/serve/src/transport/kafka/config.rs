@@ -126,7 +126,8 @@ impl KafkaConfig {
         }
         let mut c = self.with_properties(c, true);
         // Not the user's to change: the statistics' high watermarks are how a replica knows
-        // it has read what the broker holds (sync timeouts are held until then).
+        // it has read what the broker holds (a quiet partition's stream time runs on only
+        // then).
         c.set("statistics.interval.ms", STATISTICS_INTERVAL_MS.to_string());
         c
     }
@@ -157,8 +158,9 @@ impl KafkaConfig {
 
 /// How often the consumer reports its statistics (librdkafka `statistics.interval.ms`): the
 /// lag gauge, and each owned partition's high watermark, which tells whether records wait
-/// unread. Well below the default `--sync-timeout` (200 ms), so a replica that falls behind
-/// holds its timeouts before they expire.
+/// unread. Well below the default `--sync-timeout` (200 ms): a caught-up, quiet partition's
+/// stream time runs on by these reports, so a frame of a quiet scene leaves at most one
+/// interval after its timeout.
 pub const STATISTICS_INTERVAL_MS: u64 = 100;
 
 /// Consumer defaults of both group protocols.

@@ -180,10 +180,12 @@ impl Kafka {
         };
         let (last, clock) = {
             let mut o = lock(&self.offsets);
-            let Some(last) = o.enter_scene(scene, partition) else {
+            // Not the scene's first record here, or (never both) its partition not owned.
+            let (Some(last), Some(clock)) = (o.enter_scene(scene, partition), o.clock(partition))
+            else {
                 return;
             };
-            (last, o.clock(partition))
+            (last, clock)
         };
         let dropped = s.restart(last);
         s.follow_stream(clock);
