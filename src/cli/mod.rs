@@ -4,6 +4,7 @@ use clap::{Parser, Subcommand};
 
 pub mod demo;
 pub mod eval;
+pub mod fit_check;
 pub mod import;
 pub mod model;
 pub mod serve;
@@ -73,6 +74,9 @@ pub enum Command {
     Demo(demo::DemoArgs),
     /// Each camera's clock offset, estimated from a recording's detections with the model.
     SyncCheck(sync_check::SyncCheckArgs),
+    /// Whether each camera still fits the model over a recording, label-free (a camera that
+    /// moved, was re-aimed or zoomed stops fitting).
+    FitCheck(fit_check::FitCheckArgs),
     /// Print the OpenAPI 3.1 description of the HTTP API (what `GET /openapi.json` serves);
     /// `crossview openapi > docs/openapi.json` regenerates the committed copy.
     Openapi,
@@ -99,6 +103,7 @@ pub fn run() -> anyhow::Result<()> {
         Command::Train(args) => train::run(args),
         Command::Demo(args) => demo::run(args),
         Command::SyncCheck(args) => sync_check::run(args),
+        Command::FitCheck(args) => fit_check::run(args),
         Command::Openapi => {
             println!("{}", crossview_serve::openapi_json());
             Ok(())

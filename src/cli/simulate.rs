@@ -5,7 +5,9 @@ use anyhow::Context;
 use clap::Args;
 
 use crossview_data::recording::RecordingWriter;
-use crossview_data::sim::{AppearanceConfig, DetectorNoise, SceneConfig, SimConfig, Simulator};
+use crossview_data::sim::{
+    AppearanceConfig, CameraMove, DetectorNoise, SceneConfig, SimConfig, Simulator,
+};
 
 /// Options of `crossview simulate`.
 #[derive(Debug, Args)]
@@ -80,6 +82,12 @@ pub struct SimulateArgs {
     /// custom layout from a preset.
     #[arg(long)]
     pub write_scene: Option<PathBuf>,
+    /// Move a camera mid-recording, as a bump, a re-aim or a zoom would
+    /// (`CAMERA@SECONDS:pan=P,tilt=T,zoom=Z`; pan and tilt in degrees, or with `%` in percent
+    /// of the image width / height that the image centre moves; repeatable), e.g.
+    /// `C2@60:pan=5%` or `C2@60:zoom=1.2`.
+    #[arg(long = "move", value_name = "CAMERA@SECONDS:CHANGES")]
+    pub moves: Vec<String>,
 }
 
 impl SimulateArgs {
@@ -122,9 +130,59 @@ impl SimulateArgs {
                 ..AppearanceConfig::default()
             });
         }
+        cfg.moves = self
+            .moves
+            .iter()
+            .map(|m| parse_move(&cfg.scene, m))
+            .collect::<anyhow::Result<_>>()?;
         cfg.validate()?;
         Ok(cfg)
     }
+}
+
+/// `CAMERA@SECONDS:pan=P,tilt=T,zoom=Z` → a [`CameraMove`] of a camera of `scene`.
+fn parse_move(scene: &SceneConfig, spec: &str) -> anyhow::Result<CameraMove> {
+    let bad = || anyhow::anyhow!("--move wants CAMERA@SECONDS:pan=P,tilt=T,zoom=Z, got '{spec}'");
+    let (camera, rest) = spec.split_once('@').ok_or_else(bad)?;
+    let (at, changes) = rest.split_once(':').ok_or_else(bad)?;
+    let config = scene
+        .cameras
+        .iter()
+        .find(|c| c.name == camera)
+        .with_context(|| format!("--move: no camera '{camera}' in the scene"))?;
+    let mut m = CameraMove {
+        camera: camera.to_string(),
+        at_s: at
+            .parse()
+            .with_context(|| format!("--move: '{at}' is not a number of seconds"))?,
+        pan_deg: 0.0,
+        tilt_deg: 0.0,
+        zoom: 1.0,
+    };
+    for change in changes.split(',') {
+        let (key, value) = change.split_once('=').ok_or_else(bad)?;
+        let (number, percent) = match value.strip_suffix('%') {
+            Some(v) => (v, true),
+            None => (value, false),
+        };
+        let v: f64 = number
+            .parse()
+            .with_context(|| format!("--move: '{value}' is not a number"))?;
+        match (key, percent) {
+            ("pan", false) => m.pan_deg = v,
+            ("pan", true) => {
+                m.pan_deg = CameraMove::pan_for(v / 100.0, config.width, config.focal_px)
+            }
+            ("tilt", false) => m.tilt_deg = v,
+            ("tilt", true) => {
+                m.tilt_deg = CameraMove::pan_for(v / 100.0, config.height, config.focal_px)
+            }
+            ("zoom", false) => m.zoom = v,
+            _ => return Err(bad()),
+        }
+    }
+    m.validate()?;
+    Ok(m)
 }
 
 /// Runs `crossview simulate`.

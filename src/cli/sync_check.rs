@@ -225,7 +225,7 @@ fn parse_lags(scene: &SceneSpec, specs: &[String]) -> anyhow::Result<Vec<i64>> {
 
 /// Every camera's embeddings over time, frame ids shifted by `lags` (in frame steps of the
 /// recording's unshifted ids).
-fn embed_series(
+pub(crate) fn embed_series(
     encoder: &mut dyn Encoder,
     recording: &Recording,
     lags: &[i64],
@@ -271,6 +271,25 @@ fn estimate(
     cfg: &OffsetConfig,
     workers: usize,
 ) -> anyhow::Result<OffsetEstimate> {
+    let profiles = profile_pairs(series, step, cfg, workers)?;
+    let frames: Vec<usize> = series.iter().map(CameraSeries::len).collect();
+    Ok(solve(
+        series.len(),
+        &profiles,
+        &frames,
+        step,
+        reference,
+        cfg,
+    ))
+}
+
+/// The profile of every camera pair `(a, b)`, `a < b`, in order, on `workers` threads.
+pub(crate) fn profile_pairs(
+    series: &[CameraSeries],
+    step: i64,
+    cfg: &OffsetConfig,
+    workers: usize,
+) -> anyhow::Result<Vec<(usize, usize, PairProfile)>> {
     let n = series.len();
     let pairs: Vec<(usize, usize)> = camera_pairs(n).collect();
     let mut states = vec![(); workers.clamp(1, pairs.len().max(1))];
@@ -287,8 +306,7 @@ fn estimate(
             Ok(())
         },
     )?;
-    let frames: Vec<usize> = series.iter().map(CameraSeries::len).collect();
-    Ok(solve(n, &profiles, &frames, step, reference, cfg))
+    Ok(profiles)
 }
 
 /// The human-readable table.

@@ -6,6 +6,7 @@ mod closed_pipe;
 mod demo;
 mod eval;
 mod fail_closed;
+mod fit_check;
 mod kafka;
 mod model;
 mod offline_workers;

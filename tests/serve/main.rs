@@ -4,6 +4,7 @@
 
 mod auth_and_origin;
 mod bad_input;
+mod camera_fit;
 mod careless;
 mod clock_offsets;
 mod connections;

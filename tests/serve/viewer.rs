@@ -204,6 +204,22 @@ async fn the_viewer_draws_the_live_frames_of_the_real_server() {
         assert!(["unknown", "in-sync", "off"].contains(&state), "{clocks}");
         assert!(c[1].as_str().unwrap().starts_with("clock"), "{clocks}");
     }
+    // And whether it still fits the model, from the same poll.
+    let fits = browser
+        .wait_for(
+            "the camera fit in every panel",
+            "(() => { const ps = [...document.querySelectorAll('.panel')]; \
+               return ps.every((p) => p.dataset.fit !== 'none') && \
+                 ps.map((p) => p.dataset.fit); })()",
+        )
+        .await;
+    for state in fits.as_array().unwrap() {
+        let state = state.as_str().unwrap();
+        assert!(
+            ["fits", "drifting", "does_not_fit", "silent", "unknown"].contains(&state),
+            "{fits}"
+        );
+    }
     if let Some(path) = std::env::var_os("CROSSVIEW_VIEWER_SCREENSHOT") {
         // A few seconds of frames, so the rate has a full window.
         browser

@@ -171,6 +171,25 @@ pub fn scene_to_pb(s: types::SceneDescription) -> pb::Scene {
         appearance_length: s.appearance_length.unwrap_or(0) as u32,
         sync_timeout_ms: s.sync_timeout_ms,
         clock: s.clock.map(clock_to_pb),
+        fit: s.fit.map(fit_to_pb),
+    }
+}
+
+/// Live camera fit → protobuf.
+pub fn fit_to_pb(f: types::FitEstimate) -> pb::FitEstimate {
+    pb::FitEstimate {
+        frames: u32::try_from(f.frames).unwrap_or(u32::MAX),
+        as_of_frame: f.as_of_frame,
+        cameras: f
+            .cameras
+            .into_iter()
+            .map(|c| pb::CameraFit {
+                camera: c.camera,
+                known: c.score.is_some(),
+                score: c.score.unwrap_or(0.0),
+                state: c.state,
+            })
+            .collect(),
     }
 }
 

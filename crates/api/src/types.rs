@@ -153,6 +153,37 @@ pub struct SceneDescription {
     /// watch is off or has not yet seen enough frames.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub clock: Option<ClockEstimate>,
+    /// The live watch's latest look at whether each camera still fits the model (a camera
+    /// that was bumped, re-aimed or zoomed stops fitting); absent while the watch is off or
+    /// has not yet seen enough frames.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fit: Option<FitEstimate>,
+}
+
+/// Whether each camera still fits the serving model, from the detections alone: how sharply
+/// its boxes match the other cameras' at the same moment rather than at others, against how
+/// sharply they did when the model was loaded (`docs/camera-fit.md`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct FitEstimate {
+    /// Newest frames the look read (the most recent ones).
+    pub frames: usize,
+    /// Newest frame id among them.
+    pub as_of_frame: u64,
+    /// One entry per camera, in scene order.
+    pub cameras: Vec<CameraFitState>,
+}
+
+/// One camera's live fit.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct CameraFitState {
+    /// Camera name.
+    pub camera: String,
+    /// 1: fits as when the model was loaded; toward 0: it no longer fits. `None` while
+    /// unknown or silent.
+    pub score: Option<f32>,
+    /// `fits`, `drifting` (falling), `does_not_fit` (fallen and stayed down: it moved),
+    /// `silent` (no boxes lately) or `unknown` (linked to no other camera yet).
+    pub state: String,
 }
 
 /// The server's live estimate of each camera's clock offset (`crossview serve

@@ -10,6 +10,7 @@ pub mod calibration;
 pub mod distances;
 pub mod embeddings;
 mod error;
+pub mod fit;
 pub mod identity;
 pub(crate) mod lsa;
 pub mod matching;

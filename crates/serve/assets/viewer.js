@@ -9,7 +9,8 @@
 // (loading | need-token | connecting | live | error), #status[data-frames] (frame events
 // received), and per camera panel data-frames (frames drawn), data-last-frame,
 // data-boxes-drawn, data-matched (boxes in a multi-camera identity), data-unmatched, and
-// data-clock / data-clock-offset (the server's live clock estimate, polled every 5 s).
+// data-clock / data-clock-offset (the server's live clock estimate, polled every 5 s) and
+// data-fit (whether the camera still fits the model: the same poll).
 'use strict';
 
 (() => {
@@ -296,11 +297,14 @@
     const clock = document.createElement('span');
     clock.className = 'clock';
     el.dataset.clock = 'none';
+    const fit = document.createElement('span');
+    fit.className = 'fit';
+    el.dataset.fit = 'none';
     const counts = document.createElement('span');
     counts.className = 'counts';
-    caption.append(title, size, clock, counts);
+    caption.append(title, size, clock, fit, counts);
     el.append(canvas, caption);
-    const panel = { el, canvas, counts, clock, index: c, w, h, scale };
+    const panel = { el, canvas, counts, clock, fit, index: c, w, h, scale };
     clearPanel(panel, 'waiting for frames');
     return panel;
   }
@@ -439,12 +443,39 @@
     }
   }
 
+  // Whether each camera still fits the model (the scene description's `fit`): data-fit is
+  // 'none' (no look yet) or the state (fits, drifting, does_not_fit, silent, unknown); the
+  // badge shows only what needs a look.
+  const FIT_TEXT = {
+    fits: '',
+    drifting: 'fit drifting',
+    does_not_fit: 'moved? does not fit the model',
+    silent: 'silent',
+    unknown: '',
+  };
+
+  function showFit(info) {
+    const cams = info && info.fit && Array.isArray(info.fit.cameras) ? info.fit.cameras : [];
+    for (const p of view.panels) {
+      const c = cams.find((x) => x && x.camera === p.el.dataset.camera);
+      if (!c || !(c.state in FIT_TEXT)) continue;
+      p.el.dataset.fit = c.state;
+      p.fit.textContent = FIT_TEXT[c.state];
+      p.fit.title = typeof c.score === 'number'
+        ? 'fit score ' + c.score.toFixed(2) + ' (1: as when the model was loaded)'
+        : c.state;
+    }
+  }
+
   async function pollClock() {
     if (!view.scene) return;
     const generation = view.generation;
     try {
       const info = await (await api('/v1/scenes/' + encodeURIComponent(view.scene.name))).json();
-      if (generation === view.generation) showClock(info);
+      if (generation === view.generation) {
+        showClock(info);
+        showFit(info);
+      }
     } catch (e) {
       // The event stream reports connection and key problems; a missed poll is retried.
     }

@@ -335,6 +335,21 @@ impl Metrics {
             .set(f64::from(confidence));
     }
 
+    /// A camera's live fit score (NaN while unknown or silent) and its state: one
+    /// `crossview_camera_fit_state{state}` series per state, 1 for the camera's.
+    pub(crate) fn camera_fit(&self, scene: &str, camera: &str, score: Option<f32>, state: &str) {
+        let labels = [("scene", scene), ("camera", camera)];
+        self.recorder
+            .register_gauge(&key("crossview_camera_fit", &labels), &META)
+            .set(score.map_or(f64::NAN, f64::from));
+        for s in ["fits", "drifting", "does_not_fit", "silent", "unknown"] {
+            let labels = [("scene", scene), ("camera", camera), ("state", s)];
+            self.recorder
+                .register_gauge(&key("crossview_camera_fit_state", &labels), &META)
+                .set(if s == state { 1.0 } else { 0.0 });
+        }
+    }
+
     /// `--auto-align` changed a camera's clock offset.
     pub(crate) fn clock_aligned(&self, scene: &str, camera: &str) {
         self.inc(

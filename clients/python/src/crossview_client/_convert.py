@@ -100,6 +100,20 @@ def scene_from_pb(s: pb.Scene) -> Scene:
                 for c in s.clock.cameras
             ],
         }
+    fit: dict[str, Any] | None = None
+    if s.HasField("fit"):
+        fit = {
+            "frames": s.fit.frames,
+            "as_of_frame": s.fit.as_of_frame,
+            "cameras": [
+                {
+                    "camera": c.camera,
+                    "score": c.score if c.known else None,
+                    "state": c.state,
+                }
+                for c in s.fit.cameras
+            ],
+        }
     return Scene(
         name=s.name,
         cameras=tuple(Camera(c.name, c.width, c.height, c.offset) for c in s.cameras),
@@ -109,6 +123,7 @@ def scene_from_pb(s: pb.Scene) -> Scene:
         appearance_length=s.appearance_length,
         sync_timeout_ms=s.sync_timeout_ms,
         clock=clock,
+        fit=fit,
     )
 
 
@@ -161,6 +176,7 @@ def scene_from_json(obj: object) -> Scene:
     """A scene description from its JSON object."""
     s = _expect(obj, "scene")
     clock = s.get("clock")
+    fit = s.get("fit")
     return Scene(
         name=str(s["name"]),
         cameras=tuple(
@@ -173,6 +189,7 @@ def scene_from_json(obj: object) -> Scene:
         appearance_length=int(s.get("appearance_length") or 0),
         sync_timeout_ms=int(s.get("sync_timeout_ms") or 0),
         clock=clock if isinstance(clock, Mapping) else None,
+        fit=fit if isinstance(fit, Mapping) else None,
     )
 
 

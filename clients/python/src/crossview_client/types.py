@@ -208,6 +208,9 @@ class Scene:
     appearance_length: int
     sync_timeout_ms: int
     clock: Mapping[str, Any] | None = field(default=None, compare=False)
+    #: Whether each camera still fits the model (``docs/camera-fit.md``): ``as_of_frame``,
+    #: ``frames`` and per camera ``score`` and ``state``; ``None`` while unknown.
+    fit: Mapping[str, Any] | None = field(default=None, compare=False)
 
 
 @dataclass(frozen=True, slots=True)

@@ -87,6 +87,17 @@ impl CameraSeries {
         self.frames = self.frames.split_off(&frame_id);
     }
 
+    /// A copy of the frames from `from` to `to`, both included (a window of a longer series).
+    pub fn between(&self, from: i64, to: i64) -> CameraSeries {
+        CameraSeries {
+            frames: self
+                .frames
+                .range(from..=to.max(from))
+                .map(|(&t, v)| (t, v.clone()))
+                .collect(),
+        }
+    }
+
     /// Number of frames held.
     pub fn len(&self) -> usize {
         self.frames.len()
@@ -98,7 +109,7 @@ impl CameraSeries {
     }
 
     /// The frame ids held, ascending.
-    pub fn frame_ids(&self) -> impl Iterator<Item = i64> + '_ {
+    pub fn frame_ids(&self) -> impl DoubleEndedIterator<Item = i64> + '_ {
         self.frames.keys().copied()
     }
 
@@ -135,11 +146,21 @@ pub fn estimate(
     reference: Option<usize>,
     cfg: &OffsetConfig,
 ) -> OffsetEstimate {
-    let profiles: Vec<(usize, usize, PairProfile)> = camera_pairs(series.len())
-        .map(|(a, b)| (a, b, profile(&series[a], &series[b], step, cfg)))
-        .collect();
+    let profiles = profiles(series, step, cfg);
     let frames: Vec<usize> = series.iter().map(CameraSeries::len).collect();
     solve(series.len(), &profiles, &frames, step, reference, cfg)
+}
+
+/// Every pair's [`profile`] on one thread, `(a, b)` with `a < b` in [`camera_pairs`] order
+/// (what [`estimate`] solves; the camera fit, [`crate::fit`], reads them again).
+pub fn profiles(
+    series: &[CameraSeries],
+    step: i64,
+    cfg: &OffsetConfig,
+) -> Vec<(usize, usize, PairProfile)> {
+    camera_pairs(series.len())
+        .map(|(a, b)| (a, b, profile(&series[a], &series[b], step, cfg)))
+        .collect()
 }
 
 /// Why a camera has no offset.

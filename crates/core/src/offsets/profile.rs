@@ -23,6 +23,12 @@ pub struct PairProfile {
     /// Paired z-score of the minimum against every shift at least two steps away (the
     /// smallest of them; 0 when there is none to compare with).
     pub z: f32,
+    /// The frame ids of camera `a` profiled, ascending: the rows of `values`.
+    pub frames: Vec<i64>,
+    /// Per frame of `a` (rows) and shift (columns), the mean matched distance (`NaN` where
+    /// `b` has no frame): what the costs average, kept so that a later look at the newest
+    /// frames alone ([`crate::fit`]) costs no matching.
+    pub values: Array2<f32>,
 }
 
 impl PairProfile {
@@ -62,11 +68,17 @@ pub fn profile(a: &CameraSeries, b: &CameraSeries, step: i64, cfg: &OffsetConfig
             values[(i, j)] = sum / pairs.len() as f32;
         }
     }
-    summarise(shifts, &values, step, cfg)
+    summarise(shifts, ts, values, step, cfg)
 }
 
 /// The profile's costs, minimum, refinement and z-score from the per-frame values.
-fn summarise(shifts: Vec<i64>, values: &Array2<f32>, step: i64, cfg: &OffsetConfig) -> PairProfile {
+fn summarise(
+    shifts: Vec<i64>,
+    frames: Vec<i64>,
+    values: Array2<f32>,
+    step: i64,
+    cfg: &OffsetConfig,
+) -> PairProfile {
     let mut costs = Vec::with_capacity(shifts.len());
     let mut counts = Vec::with_capacity(shifts.len());
     for column in values.columns() {
@@ -91,7 +103,7 @@ fn summarise(shifts: Vec<i64>, values: &Array2<f32>, step: i64, cfg: &OffsetConf
         None => (None, 0.0),
         Some(b) => (
             Some(refine(&costs, b, shifts[b], step)),
-            min_z(values, b, cfg.min_frames),
+            min_z(&values, b, cfg.min_frames),
         ),
     };
     PairProfile {
@@ -101,6 +113,8 @@ fn summarise(shifts: Vec<i64>, values: &Array2<f32>, step: i64, cfg: &OffsetConf
         best,
         refined,
         z,
+        frames,
+        values,
     }
 }
 

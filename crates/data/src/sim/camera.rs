@@ -106,6 +106,69 @@ fn check_finite(field: &str, v: &[f64]) -> Result<()> {
     }
 }
 
+/// A change of one camera's pose or focal length at a given second of a simulated recording
+/// (`crossview simulate --move`): the truth the camera-fit watch is tested against.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraMove {
+    /// The camera that moves.
+    pub camera: String,
+    /// Seconds after the first frame.
+    pub at_s: f64,
+    /// Turn about the camera's vertical axis, degrees (positive: the view swings right).
+    #[serde(default)]
+    pub pan_deg: f64,
+    /// Turn about the camera's horizontal axis, degrees (positive: the view swings down).
+    #[serde(default)]
+    pub tilt_deg: f64,
+    /// Focal length factor (1: unchanged; 1.2: zoomed in by 20 %).
+    #[serde(default = "one")]
+    pub zoom: f64,
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+impl CameraMove {
+    /// Checks the values: finite, within ±60° and a zoom within `[0.25, 4]`.
+    pub fn validate(&self) -> Result<()> {
+        if !self.at_s.is_finite() || self.at_s < 0.0 {
+            return Err(Error::invalid(
+                "move.at_s",
+                format!(
+                    "must be a non-negative number of seconds, got {}",
+                    self.at_s
+                ),
+            ));
+        }
+        for (field, v) in [
+            ("move.pan_deg", self.pan_deg),
+            ("move.tilt_deg", self.tilt_deg),
+        ] {
+            if !v.is_finite() || v.abs() > 60.0 {
+                return Err(Error::invalid(
+                    field,
+                    format!("must be within ±60, got {v}"),
+                ));
+            }
+        }
+        if !self.zoom.is_finite() || !(0.25..=4.0).contains(&self.zoom) {
+            return Err(Error::invalid(
+                "move.zoom",
+                format!("must be within [0.25, 4], got {}", self.zoom),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The pan, in degrees, that moves the image centre by `fraction` of the width of a
+    /// camera `width` pixels wide with focal length `focal_px`.
+    pub fn pan_for(fraction: f64, width: u32, focal_px: f64) -> f64 {
+        (fraction * f64::from(width) / focal_px).atan().to_degrees()
+    }
+}
+
 /// A calibrated static pinhole camera (no lens distortion).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Camera {
@@ -192,6 +255,24 @@ impl Camera {
             ));
         }
         Ok(Camera { spec, k, r, center })
+    }
+
+    /// The same camera after a move: turned by `pan_deg` about its own vertical (image-down)
+    /// axis (positive: the view swings right, what was at the centre moves left in the image),
+    /// tilted by `tilt_deg` about its own horizontal axis (positive: the view swings down),
+    /// and its focal length times `zoom`. What a bump, a re-aim or a zoom does to a static
+    /// camera: the pose changes, the mount stays.
+    pub fn moved(&self, m: &CameraMove) -> Result<Camera> {
+        m.validate()?;
+        let (sp, cp) = m.pan_deg.to_radians().sin_cos();
+        let (st, ct) = m.tilt_deg.to_radians().sin_cos();
+        // Rows of the new camera axes in the old camera frame: pan about y, then tilt about x.
+        let pan = [[cp, 0.0, -sp], [0.0, 1.0, 0.0], [sp, 0.0, cp]];
+        let tilt = [[1.0, 0.0, 0.0], [0.0, ct, -st], [0.0, st, ct]];
+        let turn = matmul(tilt, pan);
+        let r = matmul(turn, self.r);
+        let k = [self.k[0] * m.zoom, self.k[1] * m.zoom, self.k[2], self.k[3]];
+        Camera::new(self.spec.clone(), k, r, self.center)
     }
 
     /// Optical centre in world coordinates.
@@ -288,6 +369,16 @@ fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
+fn matmul(a: [[f64; 3]; 3], b: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
+    let mut m = [[0.0; 3]; 3];
+    for (i, row) in m.iter_mut().enumerate() {
+        for (j, v) in row.iter_mut().enumerate() {
+            *v = (0..3).map(|k| a[i][k] * b[k][j]).sum();
+        }
+    }
+    m
+}
+
 fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [
         a[1] * b[2] - a[2] * b[1],
@@ -314,6 +405,57 @@ mod tests {
         }
         .build("camera")
         .unwrap()
+    }
+
+    fn turn(pan_deg: f64, tilt_deg: f64, zoom: f64) -> CameraMove {
+        CameraMove {
+            camera: "c".into(),
+            at_s: 0.0,
+            pan_deg,
+            tilt_deg,
+            zoom,
+        }
+    }
+
+    #[test]
+    fn a_move_turns_the_view_about_the_mount_and_zooms_about_the_centre() {
+        let c = cam();
+        let centre = [10.0, 0.0, 0.0];
+        // Panned right by 5 % of the width: what was at the centre is 96 px further left.
+        let pan = c
+            .moved(&turn(CameraMove::pan_for(0.05, 1920, 1000.0), 0.0, 1.0))
+            .unwrap();
+        let p = pan.project(centre).unwrap();
+        assert!(
+            (p[0] - (960.0 - 96.0)).abs() < 1e-6 && (p[1] - 540.0).abs() < 1e-6,
+            "{p:?}"
+        );
+        assert_eq!(pan.center(), c.center());
+        // Tilted down: it moves up.
+        assert!(
+            c.moved(&turn(0.0, 3.0, 1.0))
+                .unwrap()
+                .project(centre)
+                .unwrap()[1]
+                < 540.0
+        );
+        // Zoomed 1.2×: offsets from the centre grow by 1.2, the centre stays.
+        let zoom = c.moved(&turn(0.0, 0.0, 1.2)).unwrap();
+        let (a, b) = (
+            c.project([10.0, 1.0, 0.0]).unwrap(),
+            zoom.project([10.0, 1.0, 0.0]).unwrap(),
+        );
+        assert!(((b[0] - 960.0) - 1.2 * (a[0] - 960.0)).abs() < 1e-6);
+        assert_eq!(zoom.project(centre).unwrap(), c.project(centre).unwrap());
+        // Nothing moves: the same camera.
+        assert_eq!(c.moved(&turn(0.0, 0.0, 1.0)).unwrap(), c);
+        for bad in [
+            turn(f64::NAN, 0.0, 1.0),
+            turn(0.0, 61.0, 1.0),
+            turn(0.0, 0.0, 0.0),
+        ] {
+            assert!(c.moved(&bad).is_err(), "{bad:?}");
+        }
     }
 
     #[test]

@@ -28,7 +28,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 pub use appearance::AppearanceConfig;
-pub use camera::{Camera, CameraConfig};
+pub use camera::{Camera, CameraConfig, CameraMove};
 pub use crowd::{PeopleConfig, Person};
 pub use detector::DetectorNoise;
 pub use ground::{BODY_RADIUS_M, ground_distances};
@@ -66,6 +66,8 @@ pub struct SimConfig {
     pub appearance: Option<AppearanceConfig>,
     /// Write ground-truth `id`s.
     pub ids: bool,
+    /// Cameras that move during the recording (a bump, a re-aim, a zoom), in any order.
+    pub moves: Vec<CameraMove>,
 }
 
 impl SimConfig {
@@ -89,6 +91,7 @@ impl SimConfig {
             detector: DetectorNoise::default(),
             appearance: None,
             ids: true,
+            moves: Vec::new(),
         }
     }
 
@@ -131,6 +134,11 @@ impl SimConfig {
         if let Some(a) = &self.appearance {
             a.validate()?;
         }
+        let spec = self.scene.spec();
+        for m in &self.moves {
+            m.validate()?;
+            spec.camera_index(&m.camera)?;
+        }
         Ok(())
     }
 }
@@ -149,6 +157,8 @@ pub struct Simulator {
     appearance: Option<appearance::AppearanceModel>,
     prototypes: Vec<Vec<f64>>,
     emitted: u64,
+    /// Moves not yet made: (frame index, camera index, move), latest first.
+    moves: Vec<(u64, usize, CameraMove)>,
 }
 
 fn stream(seed: u64, k: u64) -> ChaCha8Rng {
@@ -183,8 +193,18 @@ impl Simulator {
             people = crowd.people().len(),
             "simulator ready"
         );
+        let spec = cfg.scene.spec();
+        let mut moves: Vec<(u64, usize, CameraMove)> = cfg
+            .moves
+            .iter()
+            .map(|m| {
+                let at = (m.at_s * cfg.fps).round() as u64;
+                Ok((at, spec.camera_index(&m.camera)?, m.clone()))
+            })
+            .collect::<Result<_>>()?;
+        moves.sort_by_key(|m| std::cmp::Reverse(m.0));
         Ok(Simulator {
-            spec: cfg.scene.spec(),
+            spec,
             cfg: cfg.clone(),
             cameras,
             crowd,
@@ -194,6 +214,7 @@ impl Simulator {
             appearance,
             prototypes: Vec::new(),
             emitted: 0,
+            moves,
         })
     }
 
@@ -236,6 +257,14 @@ impl Simulator {
     pub fn next_frame(&mut self) -> Option<Frame> {
         if self.emitted >= self.cfg.frames {
             return None;
+        }
+        while self.moves.last().is_some_and(|m| m.0 <= self.emitted) {
+            let (_, c, m) = self.moves.pop().expect("checked");
+            // Validated with the configuration; a failure leaves the camera where it was.
+            match self.cameras[c].moved(&m) {
+                Ok(moved) => self.cameras[c] = moved,
+                Err(e) => tracing::warn!(camera = %m.camera, error = %e, "move not made"),
+            }
         }
         let frame_id = self.cfg.first_frame_id + self.emitted * self.cfg.frame_step;
         let mut frame = Frame::new(frame_id, self.cameras.len());

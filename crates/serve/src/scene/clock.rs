@@ -27,10 +27,13 @@ use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, sync_channel};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use crossview_api::types::{CameraClock, ClockEstimate};
-use crossview_core::offsets::{CameraSeries, OffsetConfig, OffsetEstimate, estimate, frame_step};
+use crossview_api::types::{CameraClock, ClockEstimate, FitEstimate};
+use crossview_core::offsets::{
+    CameraSeries, OffsetConfig, OffsetEstimate, frame_step, profiles, solve,
+};
 use crossview_core::{CameraSpec, FrameEmbeddings, SceneSpec};
 
+use super::fit::FitReporter;
 use super::lock;
 use crate::config::ClockWatchConfig;
 use crate::metrics::Metrics;
@@ -38,6 +41,9 @@ use crate::metrics::Metrics;
 /// Each camera's clock offset as the synchronizer applies it now: the declared one (`@±N`),
 /// changed by `--auto-align`.
 pub(crate) type Offsets = Arc<[AtomicI64]>;
+
+/// Where the watch thread leaves its latest estimate for the scene description.
+pub(super) type Latest<T> = Arc<Mutex<Option<T>>>;
 
 /// An `--auto-align` proposal for a camera needs its estimate this close to a whole number of
 /// steps and at least this far from 0 (hysteresis: a camera near ±0.5 frame is left alone).
@@ -133,13 +139,15 @@ pub(super) struct ClockWatch {
 }
 
 impl ClockWatch {
-    /// Starts the watch thread of scene `spec`; it writes each estimate into `state`. `None`
-    /// when the watch is off (window 0) or its thread could not start (logged).
+    /// Starts the watch thread of scene `spec`; it writes each estimate into `state` and each
+    /// look at the cameras' fit into `fit`. `None` when the watch is off (window 0) or its
+    /// thread could not start (logged).
     pub(super) fn start(
         spec: &SceneSpec,
         config: ClockWatchConfig,
         metrics: Metrics,
-        state: Arc<Mutex<Option<ClockEstimate>>>,
+        state: Latest<ClockEstimate>,
+        fit: Latest<FitEstimate>,
         offsets: Offsets,
     ) -> Option<Self> {
         if config.window == 0 {
@@ -155,7 +163,8 @@ impl ClockWatch {
                     state,
                     offsets,
                 };
-                watch(&watched, config, &shared, &rx);
+                let mut fit = FitReporter::new(watched.cameras.len(), fit);
+                watch(&watched, config, &shared, &mut fit, &rx);
             });
         if let Err(e) = spawned {
             tracing::error!(scene = %spec.name, error = %e, "clock watch not started");
@@ -186,7 +195,13 @@ struct Shared {
 /// The watch thread: takes the worker's frames into its window and, once per interval, makes
 /// an estimate of the window if it changed and holds enough frames; ends when the worker
 /// drops its [`ClockWatch`].
-fn watch(spec: &SceneSpec, config: ClockWatchConfig, shared: &Shared, rx: &Receiver<Observed>) {
+fn watch(
+    spec: &SceneSpec,
+    config: ClockWatchConfig,
+    shared: &Shared,
+    fit: &mut FitReporter,
+    rx: &Receiver<Observed>,
+) {
     let offsets = OffsetConfig {
         max_offset: config.max_offset,
         ..OffsetConfig::default()
@@ -199,7 +214,13 @@ fn watch(spec: &SceneSpec, config: ClockWatchConfig, shared: &Shared, rx: &Recei
     let mut due = Instant::now() + period;
     loop {
         match rx.recv_timeout(due.saturating_duration_since(Instant::now())) {
-            Ok(frame) => window.insert(frame),
+            Ok(frame) => {
+                if frame.0 != window.epoch {
+                    // A new model: its contrasts are not comparable with the old one's.
+                    fit.reset();
+                }
+                window.insert(frame)
+            }
             Err(RecvTimeoutError::Timeout) => {}
             Err(RecvTimeoutError::Disconnected) => return,
         }
@@ -208,6 +229,9 @@ fn watch(spec: &SceneSpec, config: ClockWatchConfig, shared: &Shared, rx: &Recei
         }
         // Everything queued meanwhile first (frames wait here while an estimate runs).
         while let Ok(frame) = rx.try_recv() {
+            if frame.0 != window.epoch {
+                fit.reset();
+            }
             window.insert(frame);
         }
         if !window.changed || window.ids.len() < enough {
@@ -217,7 +241,11 @@ fn watch(spec: &SceneSpec, config: ClockWatchConfig, shared: &Shared, rx: &Recei
         window.changed = false;
         let t = Instant::now();
         let step = frame_step(window.series.iter().flat_map(CameraSeries::frame_ids));
-        let found = estimate(&window.series, step, None, &offsets);
+        let pairs = profiles(&window.series, step, &offsets);
+        let counts: Vec<usize> = window.series.iter().map(CameraSeries::len).collect();
+        let found = solve(window.series.len(), &pairs, &counts, step, None, &offsets);
+        let ids: Vec<i64> = window.ids.iter().copied().collect();
+        fit.look(spec, &shared.metrics, &window.series, &ids, &pairs);
         shared.metrics.clock_estimate(&spec.name, t.elapsed());
         let report = describe(spec, &found, window.ids.len(), window.as_of);
         report_changes(spec, &report, &shared.metrics, &mut flagged);

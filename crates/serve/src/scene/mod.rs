@@ -24,7 +24,7 @@ use std::time::{Duration, Instant};
 
 use tokio::sync::{Notify, broadcast, oneshot};
 
-use crossview_api::types::{ClockEstimate, FrameResult, SceneDescription};
+use crossview_api::types::{ClockEstimate, FitEstimate, FrameResult, SceneDescription};
 use crossview_core::tracking::{Tracker, TrackerConfig};
 use crossview_core::{Detection, Encoder, Frame, SceneSpec};
 
@@ -36,6 +36,7 @@ use crate::sync::{Rejection, Synchronizer};
 
 mod admission;
 mod clock;
+mod fit;
 mod published;
 mod timebase;
 mod validate;
@@ -97,6 +98,8 @@ pub struct Scene {
     recorder: Option<SceneRecorder>,
     /// The live clock watch's latest estimate ([`clock`]).
     clock: Arc<Mutex<Option<ClockEstimate>>>,
+    /// The live watch's latest look at the cameras' fit ([`fit`]).
+    fit: Arc<Mutex<Option<FitEstimate>>>,
     /// Each camera's clock offset as applied now (declared, or changed by `--auto-align`).
     offsets: clock::Offsets,
 }
@@ -153,6 +156,7 @@ impl Scene {
         let close_by = Arc::new(Mutex::new(None));
         let published = Arc::new(AtomicU64::new(0));
         let clock = Arc::new(Mutex::new(None));
+        let fit = Arc::new(Mutex::new(None));
         let offsets: clock::Offsets = spec
             .cameras
             .iter()
@@ -174,6 +178,7 @@ impl Scene {
                 limits.clock_watch,
                 metrics.clone(),
                 clock.clone(),
+                fit.clone(),
                 offsets.clone(),
             ),
         };
@@ -204,6 +209,7 @@ impl Scene {
             worker: Mutex::new(Some(handle)),
             recorder,
             clock,
+            fit,
             offsets,
         }))
     }
@@ -265,6 +271,7 @@ impl Scene {
             appearance_length: (app > 0).then_some(app),
             sync_timeout_ms: self.sync_timeout.as_millis() as u64,
             clock: lock(&self.clock).clone(),
+            fit: lock(&self.fit).clone(),
         }
     }
 

@@ -197,7 +197,7 @@ class Camera(_message.Message):
     def __init__(self, name: _Optional[str] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., offset: _Optional[int] = ...) -> None: ...
 
 class Scene(_message.Message):
-    __slots__ = ("name", "cameras", "threshold", "alpha", "model_version", "appearance_length", "sync_timeout_ms", "clock")
+    __slots__ = ("name", "cameras", "threshold", "alpha", "model_version", "appearance_length", "sync_timeout_ms", "clock", "fit")
     NAME_FIELD_NUMBER: _ClassVar[int]
     CAMERAS_FIELD_NUMBER: _ClassVar[int]
     THRESHOLD_FIELD_NUMBER: _ClassVar[int]
@@ -206,6 +206,7 @@ class Scene(_message.Message):
     APPEARANCE_LENGTH_FIELD_NUMBER: _ClassVar[int]
     SYNC_TIMEOUT_MS_FIELD_NUMBER: _ClassVar[int]
     CLOCK_FIELD_NUMBER: _ClassVar[int]
+    FIT_FIELD_NUMBER: _ClassVar[int]
     name: str
     cameras: _containers.RepeatedCompositeFieldContainer[Camera]
     threshold: float
@@ -214,7 +215,30 @@ class Scene(_message.Message):
     appearance_length: int
     sync_timeout_ms: int
     clock: ClockEstimate
-    def __init__(self, name: _Optional[str] = ..., cameras: _Optional[_Iterable[_Union[Camera, _Mapping]]] = ..., threshold: _Optional[float] = ..., alpha: _Optional[float] = ..., model_version: _Optional[str] = ..., appearance_length: _Optional[int] = ..., sync_timeout_ms: _Optional[int] = ..., clock: _Optional[_Union[ClockEstimate, _Mapping]] = ...) -> None: ...
+    fit: FitEstimate
+    def __init__(self, name: _Optional[str] = ..., cameras: _Optional[_Iterable[_Union[Camera, _Mapping]]] = ..., threshold: _Optional[float] = ..., alpha: _Optional[float] = ..., model_version: _Optional[str] = ..., appearance_length: _Optional[int] = ..., sync_timeout_ms: _Optional[int] = ..., clock: _Optional[_Union[ClockEstimate, _Mapping]] = ..., fit: _Optional[_Union[FitEstimate, _Mapping]] = ...) -> None: ...
+
+class FitEstimate(_message.Message):
+    __slots__ = ("frames", "as_of_frame", "cameras")
+    FRAMES_FIELD_NUMBER: _ClassVar[int]
+    AS_OF_FRAME_FIELD_NUMBER: _ClassVar[int]
+    CAMERAS_FIELD_NUMBER: _ClassVar[int]
+    frames: int
+    as_of_frame: int
+    cameras: _containers.RepeatedCompositeFieldContainer[CameraFit]
+    def __init__(self, frames: _Optional[int] = ..., as_of_frame: _Optional[int] = ..., cameras: _Optional[_Iterable[_Union[CameraFit, _Mapping]]] = ...) -> None: ...
+
+class CameraFit(_message.Message):
+    __slots__ = ("camera", "known", "score", "state")
+    CAMERA_FIELD_NUMBER: _ClassVar[int]
+    KNOWN_FIELD_NUMBER: _ClassVar[int]
+    SCORE_FIELD_NUMBER: _ClassVar[int]
+    STATE_FIELD_NUMBER: _ClassVar[int]
+    camera: str
+    known: bool
+    score: float
+    state: str
+    def __init__(self, camera: _Optional[str] = ..., known: _Optional[bool] = ..., score: _Optional[float] = ..., state: _Optional[str] = ...) -> None: ...
 
 class ClockEstimate(_message.Message):
     __slots__ = ("frames", "as_of_frame", "step", "reference", "cameras")

@@ -1,0 +1,111 @@
+//! The live camera fit: after each clock estimate, the watch thread reads the same pairs'
+//! profiles over the newest frames ([`crossview_core::fit`]) and tells, per camera, whether it
+//! still fits the model — published in the scene description, as the
+//! `crossview_camera_fit{scene,camera}` and `crossview_camera_fit_state{scene,camera,state}`
+//! gauges, and as one log line per change of state (a warning when a camera stops fitting).
+//! No extra matching: the profiles keep their per-frame costs.
+use std::sync::{Arc, Mutex};
+
+use crossview_api::types::{CameraFitState, FitEstimate};
+use crossview_core::SceneSpec;
+use crossview_core::fit::{CameraFit, FitConfig, FitState, FitWatch, contrast};
+use crossview_core::offsets::{CameraSeries, PairProfile};
+
+use super::lock;
+use crate::metrics::Metrics;
+
+/// The fit side of a scene's watch thread.
+pub(super) struct FitReporter {
+    watch: FitWatch,
+    state: Arc<Mutex<Option<FitEstimate>>>,
+    /// Each camera's state as last published.
+    published: Vec<FitState>,
+}
+
+impl FitReporter {
+    /// A reporter for `cameras` cameras that writes each look into `state`.
+    pub(super) fn new(cameras: usize, state: Arc<Mutex<Option<FitEstimate>>>) -> Self {
+        FitReporter {
+            watch: FitWatch::new(cameras, FitConfig::default()),
+            state,
+            published: vec![FitState::Unknown; cameras],
+        }
+    }
+
+    /// Forgets the baselines (a new model).
+    pub(super) fn reset(&mut self) {
+        self.watch.reset();
+    }
+
+    /// One look at the window `series` (frame ids `ids`, oldest first) from the pairs'
+    /// `profiles` just computed for the clock estimate.
+    pub(super) fn look(
+        &mut self,
+        spec: &SceneSpec,
+        metrics: &Metrics,
+        series: &[CameraSeries],
+        ids: &[i64],
+        profiles: &[(usize, usize, PairProfile)],
+    ) {
+        let cfg = *self.watch.config();
+        let Some(&since) = ids.get(ids.len().saturating_sub(cfg.recent)) else {
+            return;
+        };
+        let pairs: Vec<_> = profiles
+            .iter()
+            .map(|(_, _, p)| contrast(p, since, cfg.min_frames))
+            .collect();
+        let silent: Vec<bool> = series
+            .iter()
+            .map(|s| s.frame_ids().next_back().is_none_or(|t| t < since))
+            .collect();
+        let fits = self.watch.look(&pairs, &silent);
+        self.report(spec, metrics, &fits);
+        let as_of = ids.last().and_then(|&t| u64::try_from(t).ok()).unwrap_or(0);
+        *lock(&self.state) = Some(describe(spec, &fits, ids.len().min(cfg.recent), as_of));
+    }
+
+    /// Sets the gauges and logs each change of state.
+    fn report(&mut self, spec: &SceneSpec, metrics: &Metrics, fits: &[CameraFit]) {
+        for (f, was) in fits.iter().zip(&mut self.published) {
+            let camera = &spec.cameras[f.camera].name;
+            metrics.camera_fit(&spec.name, camera, f.score, f.state.as_str());
+            if f.state == *was {
+                continue;
+            }
+            let score = f.score.unwrap_or(f32::NAN);
+            match f.state {
+                FitState::DoesNotFit => tracing::warn!(
+                    scene = %spec.name, camera = %camera, score, from = was.as_str(),
+                    "camera no longer fits the model: it moved, was re-aimed or zoomed \
+                     (retrain on new recordings, or put it back)"
+                ),
+                FitState::Drifting => tracing::warn!(
+                    scene = %spec.name, camera = %camera, score, from = was.as_str(),
+                    "camera fit drifting"
+                ),
+                _ => tracing::info!(
+                    scene = %spec.name, camera = %camera, score, from = was.as_str(),
+                    to = f.state.as_str(), "camera fit changed"
+                ),
+            }
+            *was = f.state;
+        }
+    }
+}
+
+/// The published form of a look.
+fn describe(spec: &SceneSpec, fits: &[CameraFit], frames: usize, as_of: u64) -> FitEstimate {
+    FitEstimate {
+        frames,
+        as_of_frame: as_of,
+        cameras: fits
+            .iter()
+            .map(|f| CameraFitState {
+                camera: spec.cameras[f.camera].name.clone(),
+                score: f.score,
+                state: f.state.as_str().to_string(),
+            })
+            .collect(),
+    }
+}

@@ -1,0 +1,154 @@
+//! A camera that moves is noticed live, and a camera whose clock runs late is not taken for
+//! one: the server's watch tells, per camera, whether it still fits the model (scene
+//! description over HTTP and gRPC, metrics). Real server on 127.0.0.1:0, the shipped
+//! `models/demo.onnx`, simulated `square4` frames in which one camera really turns (the
+//! simulator's pinhole pose changes mid-stream), cameras of one frame pushed in a shuffled
+//! order.
+use std::time::Duration;
+
+use crossview_api::pb;
+use crossview_core::Batch;
+use crossview_data::sim::{CameraMove, SimConfig, Simulator};
+use crossview_serve::ServeConfig;
+use crossview_serve::config::ClockWatchConfig;
+use crossview_testing::*;
+use rand::SeedableRng;
+use rand::seq::SliceRandom;
+
+const FRAMES: u64 = 520;
+/// The camera that turns, and when (frame index at 10 frames/s).
+const MOVED: usize = 1;
+const MOVE_AT: u64 = 300;
+/// A camera whose frame ids run late throughout (a clock offset, not a move).
+const LAGGING: usize = 2;
+const LAG: u64 = 4;
+
+fn configure(c: &mut ServeConfig) {
+    // Long: frames wait for the late camera while the test reads the fit mid-stream.
+    c.sync_timeout = Duration::from_secs(5);
+    c.limits.subscriber_buffer = 20_000;
+    c.limits.clock_watch = ClockWatchConfig {
+        window: 250,
+        interval: Duration::ZERO,
+        max_offset: 10,
+        auto_align: false,
+    };
+}
+
+/// The live fit once the watch has looked at frames up to `frame` (HTTP JSON).
+async fn fit_at(server: &TestServer, frame: u64) -> serde_json::Value {
+    guard("fit look", async {
+        loop {
+            let d = server.get_json("/v1/scenes/demo").await;
+            if d["fit"]["as_of_frame"]
+                .as_u64()
+                .is_some_and(|f| f + 2 >= frame)
+            {
+                return d["fit"].clone();
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await
+}
+
+fn states(fit: &serde_json::Value) -> Vec<String> {
+    fit["cameras"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["state"].as_str().unwrap().to_string())
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_camera_that_turns_stops_fitting_and_a_late_clock_does_not() {
+    let server = start_with(demo_model(), configure).await;
+    let mut cfg = SimConfig::preset("square4").unwrap();
+    cfg.frames = FRAMES;
+    cfg.seed = 21;
+    let width = cfg.scene.cameras[MOVED].width;
+    let focal = cfg.scene.cameras[MOVED].focal_px;
+    cfg.moves = vec![CameraMove {
+        camera: cfg.scene.cameras[MOVED].name.clone(),
+        at_s: MOVE_AT as f64 / cfg.fps,
+        // The image centre moves by 5 % of the width.
+        pan_deg: CameraMove::pan_for(0.05, width, focal),
+        tilt_deg: 0.0,
+        zoom: 1.0,
+    }];
+    let mut sim = Simulator::new(&cfg).unwrap();
+    let names: Vec<String> = sim.scene().cameras.iter().map(|c| c.name.clone()).collect();
+    let http = reqwest::Client::new();
+    let url = server.url("/v1/scenes/demo/batches");
+    let mut rng = rand::rngs::StdRng::seed_from_u64(5);
+    let mut before = None;
+    while let Some(frame) = sim.next_frame() {
+        if frame.frame_id == MOVE_AT {
+            // Just before the move: every camera fits, the late one included.
+            before = Some(fit_at(&server, MOVE_AT - LAG - 1).await);
+        }
+        let mut order: Vec<usize> = (0..names.len()).collect();
+        order.shuffle(&mut rng);
+        for c in order {
+            let mut dets = frame.views[c].clone().unwrap_or_default();
+            dets.iter_mut().for_each(|d| d.id = None);
+            let batch = Batch {
+                camera: names[c].clone(),
+                frame_id: frame.frame_id + if c == LAGGING { LAG } else { 0 },
+                detections: dets,
+            };
+            let r = http.post(&url).json(&batch).send().await.unwrap();
+            assert_eq!(r.status(), 202, "{}", r.text().await.unwrap());
+        }
+    }
+    let before = before.unwrap();
+    assert!(states(&before).iter().all(|s| s == "fits"), "{before}");
+    // 22 s after the turn: the turned camera does not fit, the others (the late one too) do.
+    let after = fit_at(&server, FRAMES - LAG - 1).await;
+    let s = states(&after);
+    assert_eq!(s[MOVED], "does_not_fit", "{after}");
+    for (c, state) in s.iter().enumerate() {
+        if c != MOVED {
+            assert_eq!(state, "fits", "camera {c}: {after}");
+        }
+    }
+    assert!(
+        after["cameras"][MOVED]["score"].as_f64().unwrap() < 0.7,
+        "{after}"
+    );
+    // The clock watch still sees the late camera's offset: an offset stays an offset.
+    let d = server.get_json("/v1/scenes/demo").await;
+    assert_eq!(d["clock"]["cameras"][LAGGING]["offset_ids"], LAG, "{d}");
+    // The same over gRPC and in the metrics.
+    let scene = server
+        .grpc()
+        .await
+        .get_scene(pb::GetSceneRequest {
+            scene: "demo".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let fit = scene.fit.expect("fit over gRPC");
+    assert_eq!(fit.cameras[MOVED].state, "does_not_fit");
+    assert!(fit.cameras[MOVED].known && fit.cameras[MOVED].score < 0.7);
+    let m = server.metrics().await;
+    let moved = &names[MOVED];
+    assert_eq!(
+        metric(
+            &m,
+            &format!(
+                "crossview_camera_fit_state{{scene=\"demo\",camera=\"{moved}\",state=\"does_not_fit\"}}"
+            )
+        ),
+        1.0
+    );
+    assert!(
+        metric(
+            &m,
+            &format!("crossview_camera_fit{{scene=\"demo\",camera=\"{moved}\"}}")
+        ) < 0.7
+    );
+    server.shutdown().await.unwrap();
+}
