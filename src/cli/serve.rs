@@ -120,6 +120,13 @@ pub struct ServeArgs {
     /// go to the frame they belong to (every change logged and counted).
     #[arg(long, env = "CROSSVIEW_AUTO_ALIGN")]
     pub auto_align: bool,
+    /// Leave a camera that no longer fits the model (it moved, was re-aimed or zoomed: the
+    /// clock watch's fit says `does_not_fit`) out of association until it fits again: its
+    /// boxes come back as identities of their own and the result names it in
+    /// `fenced_cameras`, so the other cameras' identities stay right (docs/camera-fit.md).
+    #[arg(long, env = "CROSSVIEW_FENCE_MOVED_CAMERAS", default_value_t = ClockWatchConfig::default().fence,
+          action = clap::ArgAction::Set, value_name = "true|false")]
+    pub fence_moved_cameras: bool,
     /// Most open connections; at the cap the longest-idle one is closed for a new one, or the
     /// new one is refused when none is idle. Keep it below `ulimit -n`.
     #[arg(long, env = "CROSSVIEW_MAX_CONNECTIONS", default_value_t = ConnectionLimits::default().max_connections)]
@@ -406,6 +413,7 @@ impl ServeArgs {
                     interval: self.clock_watch_interval,
                     max_offset: self.clock_watch_max_offset,
                     auto_align: self.auto_align,
+                    fence: self.fence_moved_cameras,
                 },
             },
             connections: ConnectionLimits {
@@ -503,5 +511,11 @@ mod tests {
             assert!(parse(&["--clock-watch-max-offset", bad]).is_err(), "{bad}");
         }
         assert!(parse(&["--clock-watch-window", "10001"]).is_err());
+        // Fencing: on by default, off on request, nothing else taken.
+        assert!(c.limits.clock_watch.fence);
+        let off = parse(&["--fence-moved-cameras", "false"]).unwrap();
+        assert!(!off.to_config().unwrap().limits.clock_watch.fence);
+        assert!(parse(&["--fence-moved-cameras", "maybe"]).is_err());
+        assert!(parse(&["--fence-moved-cameras"]).is_err());
     }
 }

@@ -1,6 +1,7 @@
-//! A camera that moves is noticed live, and a camera whose clock runs late is not taken for
-//! one: the server's watch tells, per camera, whether it still fits the model (scene
-//! description over HTTP and gRPC, metrics). Real server on 127.0.0.1:0, the shipped
+//! A camera that moves is noticed live and fenced, and a camera whose clock runs late is not
+//! taken for one: the server's watch tells, per camera, whether it still fits the model (scene
+//! description over HTTP and gRPC, metrics), and once it does not, the frames a client
+//! receives name it in `fenced_cameras` with each of its boxes an identity of its own. Real server on 127.0.0.1:0, the shipped
 //! `models/demo.onnx`, simulated `square4` frames in which one camera really turns (the
 //! simulator's pinhole pose changes mid-stream), cameras of one frame pushed in a shuffled
 //! order.
@@ -12,10 +13,13 @@ use crossview_data::sim::{CameraMove, SimConfig, Simulator};
 use crossview_serve::ServeConfig;
 use crossview_serve::config::ClockWatchConfig;
 use crossview_testing::*;
+use futures::StreamExt;
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
 
+/// Frames pushed before the fit is read; then `AFTER` more, associated with the fence up.
 const FRAMES: u64 = 520;
+const AFTER: u64 = 30;
 /// The camera that turns, and when (frame index at 10 frames/s).
 const MOVED: usize = 1;
 const MOVE_AT: u64 = 300;
@@ -32,6 +36,7 @@ fn configure(c: &mut ServeConfig) {
         interval: Duration::ZERO,
         max_offset: 10,
         auto_align: false,
+        fence: true,
     };
 }
 
@@ -65,7 +70,7 @@ fn states(fit: &serde_json::Value) -> Vec<String> {
 async fn a_camera_that_turns_stops_fitting_and_a_late_clock_does_not() {
     let server = start_with(demo_model(), configure).await;
     let mut cfg = SimConfig::preset("square4").unwrap();
-    cfg.frames = FRAMES;
+    cfg.frames = FRAMES + AFTER;
     cfg.seed = 21;
     let width = cfg.scene.cameras[MOVED].width;
     let focal = cfg.scene.cameras[MOVED].focal_px;
@@ -78,12 +83,19 @@ async fn a_camera_that_turns_stops_fitting_and_a_late_clock_does_not() {
         zoom: 1.0,
     }];
     let mut sim = Simulator::new(&cfg).unwrap();
+    let mut results = server.subscribe("demo").await;
     let names: Vec<String> = sim.scene().cameras.iter().map(|c| c.name.clone()).collect();
     let http = reqwest::Client::new();
     let url = server.url("/v1/scenes/demo/batches");
     let mut rng = rand::rngs::StdRng::seed_from_u64(5);
     let mut before = None;
+    let mut after = None;
     while let Some(frame) = sim.next_frame() {
+        if frame.frame_id == FRAMES {
+            // 22 s after the turn: the turned camera does not fit, the others (the late one
+            // too) do.
+            after = Some(fit_at(&server, FRAMES - LAG - 1).await);
+        }
         if frame.frame_id == MOVE_AT {
             // Just before the move: every camera fits, the late one included.
             before = Some(fit_at(&server, MOVE_AT - LAG - 1).await);
@@ -104,8 +116,7 @@ async fn a_camera_that_turns_stops_fitting_and_a_late_clock_does_not() {
     }
     let before = before.unwrap();
     assert!(states(&before).iter().all(|s| s == "fits"), "{before}");
-    // 22 s after the turn: the turned camera does not fit, the others (the late one too) do.
-    let after = fit_at(&server, FRAMES - LAG - 1).await;
+    let after = after.unwrap();
     let s = states(&after);
     assert_eq!(s[MOVED], "does_not_fit", "{after}");
     for (c, state) in s.iter().enumerate() {
@@ -150,5 +161,39 @@ async fn a_camera_that_turns_stops_fitting_and_a_late_clock_does_not() {
             &format!("crossview_camera_fit{{scene=\"demo\",camera=\"{moved}\"}}")
         ) < 0.7
     );
+    let fenced = format!("crossview_camera_fenced{{scene=\"demo\",camera=\"{moved}\"}}");
+    assert_eq!(metric(&m, &fenced), 1.0);
+    // What a client received: nothing fenced before the turn; once the fit said so, the
+    // turned camera fenced, each of its boxes alone, the other cameras still linked.
+    let mut fenced_frames = 0;
+    while let Some(r) = guard("result", results.next()).await {
+        let r = r.unwrap();
+        if r.frame_id < MOVE_AT {
+            assert!(r.fenced_cameras.is_empty(), "frame {}", r.frame_id);
+        }
+        if r.frame_id >= FRAMES {
+            assert_eq!(
+                r.fenced_cameras,
+                std::slice::from_ref(moved),
+                "frame {}",
+                r.frame_id
+            );
+            for i in &r.identities {
+                if i.members.iter().any(|m| m.camera == *moved) {
+                    assert_eq!(i.members.len(), 1, "frame {}: {i:?}", r.frame_id);
+                }
+            }
+            assert!(
+                r.identities.iter().any(|i| i.members.len() > 1),
+                "frame {}",
+                r.frame_id
+            );
+            fenced_frames += 1;
+        }
+        if r.frame_id + 1 >= FRAMES + AFTER {
+            break;
+        }
+    }
+    assert!(fenced_frames + LAG >= AFTER, "{fenced_frames}");
     server.shutdown().await.unwrap();
 }

@@ -36,6 +36,7 @@ fn configure(c: &mut ServeConfig, declared: Option<SceneSpec>) {
         interval: Duration::ZERO,
         max_offset: 12,
         auto_align: false,
+        fence: true,
     };
     c.scenes = declared
         .into_iter()

@@ -111,6 +111,7 @@ pub fn result_to_pb(r: &types::FrameResult) -> pb::FrameResult {
         frame_id: r.frame_id,
         complete: r.complete,
         missing_cameras: r.missing_cameras.clone(),
+        fenced_cameras: r.fenced_cameras.clone(),
         identities: r
             .identities
             .iter()
@@ -287,6 +288,7 @@ mod tests {
             frame_id: 3,
             complete: false,
             missing_cameras: vec!["b".into()],
+            fenced_cameras: vec![],
             identities: vec![],
             latency_ms: 1.5,
             error: None,

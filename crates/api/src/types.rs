@@ -66,6 +66,10 @@ pub struct FrameResult {
     pub complete: bool,
     /// Cameras that did not report.
     pub missing_cameras: Vec<String>,
+    /// Cameras left out of association because they no longer fit the model (they moved:
+    /// docs/camera-fit.md): each of their boxes is an identity of its own.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub fenced_cameras: Vec<String>,
     /// The people of the frame.
     pub identities: Vec<IdentityOut>,
     /// Server-side latency: first batch (or request) to result, in milliseconds.

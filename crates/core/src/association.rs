@@ -198,7 +198,7 @@ pub fn associate_frame(
     embeddings: FrameEmbeddings,
     cfg: &AssociationConfig,
 ) -> FrameAssociation {
-    let (sizes, mut pairs) = match_pairs(frame, &embeddings, cfg);
+    let (sizes, mut pairs) = match_pairs(frame, &embeddings, cfg, &[]);
     let identities = build_identities(&sizes, &pairs, &cfg.identity);
     match cfg.mode {
         Mode::Pairwise => {}
@@ -228,7 +228,20 @@ pub fn frame_identities(
     embeddings: &FrameEmbeddings,
     cfg: &AssociationConfig,
 ) -> Vec<Identity> {
-    let (sizes, pairs) = match_pairs(frame, embeddings, cfg);
+    frame_identities_fenced(frame, embeddings, cfg, &[])
+}
+
+/// [`frame_identities`] with the cameras `fenced[c]` left out of association: no pair with
+/// them is matched, so each of their boxes comes back as an identity of its own and the
+/// other cameras' identities are what they would be without them (a camera that no longer
+/// fits the model, [`crate::fit`], would otherwise link people wrongly).
+pub fn frame_identities_fenced(
+    frame: &Frame,
+    embeddings: &FrameEmbeddings,
+    cfg: &AssociationConfig,
+    fenced: &[bool],
+) -> Vec<Identity> {
+    let (sizes, pairs) = match_pairs(frame, embeddings, cfg, fenced);
     build_identities(&sizes, &pairs, &cfg.identity)
 }
 
@@ -244,14 +257,16 @@ pub fn associate_pairs(
     embeddings: &FrameEmbeddings,
     cfg: &AssociationConfig,
 ) -> Vec<ViewPair> {
-    match_pairs(frame, embeddings, cfg).1
+    match_pairs(frame, embeddings, cfg, &[]).1
 }
 
-/// Per-view box counts (0 for unusable views) and the pairwise matchings.
+/// Per-view box counts (0 for unusable views) and the pairwise matchings of the views not
+/// `fenced`.
 fn match_pairs(
     frame: &Frame,
     embeddings: &FrameEmbeddings,
     cfg: &AssociationConfig,
+    fenced: &[bool],
 ) -> (Vec<usize>, Vec<ViewPair>) {
     let nv = embeddings.num_views().min(frame.views.len());
     let sizes: Vec<usize> = (0..nv)
@@ -279,7 +294,9 @@ fn match_pairs(
         })
         .collect();
     // Views with boxes, in camera order, and all their pairwise geometric distances.
-    let cams: Vec<usize> = (0..nv).filter(|&c| sizes[c] > 0).collect();
+    let cams: Vec<usize> = (0..nv)
+        .filter(|&c| sizes[c] > 0 && !fenced.get(c).copied().unwrap_or(false))
+        .collect();
     let rows: Vec<_> = cams.iter().filter_map(|&c| embeddings.rows(c)).collect();
     let mut dists = all_pairs_distances(embeddings.matrix(), &rows).into_iter();
     let mut pairs = Vec::with_capacity(dists.len());
@@ -379,6 +396,33 @@ mod tests {
                 .iter()
                 .any(|i| i.members == vec![(0, 0), (1, 1), (3, 0)])
         );
+    }
+
+    #[test]
+    fn a_fenced_camera_links_nobody_and_the_others_are_as_without_it() {
+        let sc = scene(3);
+        let mut frame = Frame::new(7, 3);
+        frame.views[0] = Some(vec![det(10.0, 10.0), det(60.0, 60.0)]);
+        frame.views[1] = Some(vec![det(61.0, 60.0), det(11.0, 10.0)]);
+        frame.views[2] = Some(vec![det(10.0, 11.0), det(60.0, 61.0)]);
+        let emb = embed_frame(&mut CentreEncoder { calls: 0 }, &sc, &frame).unwrap();
+        let cfg = AssociationConfig::default();
+        let mut fenced = frame_identities_fenced(&frame, &emb, &cfg, &[false, true, false]);
+        let mut members: Vec<Vec<(usize, usize)>> =
+            fenced.iter_mut().map(|i| i.members.clone()).collect();
+        members.sort();
+        // Camera 1's boxes alone; cameras 0 and 2 linked as they are without camera 1.
+        assert_eq!(
+            members,
+            vec![
+                vec![(0, 0), (2, 0)],
+                vec![(0, 1), (2, 1)],
+                vec![(1, 0)],
+                vec![(1, 1)]
+            ]
+        );
+        let all = frame_identities(&frame, &emb, &cfg);
+        assert!(all.iter().any(|i| i.members.len() == 3), "{all:?}");
     }
 
     #[test]

@@ -175,6 +175,9 @@ pub struct ClockWatchConfig {
     /// Apply a camera's estimated offset once two estimates over full, successive windows
     /// agree on it (`--auto-align`); off by default.
     pub auto_align: bool,
+    /// Leave a camera that does not fit the model out of association until it fits again
+    /// (`--fence-moved-cameras`, docs/camera-fit.md); on by default.
+    pub fence: bool,
 }
 
 impl Default for ClockWatchConfig {
@@ -186,6 +189,7 @@ impl Default for ClockWatchConfig {
             interval: Duration::from_secs(10),
             max_offset: 10,
             auto_align: false,
+            fence: true,
         }
     }
 }

@@ -350,6 +350,19 @@ impl Metrics {
         }
     }
 
+    /// A camera fenced (left out of association) or its fence lifted:
+    /// `crossview_camera_fenced{scene,camera}` 1 or 0, and each fencing counted in
+    /// `crossview_camera_fences_total{scene,camera}`.
+    pub(crate) fn camera_fenced(&self, scene: &str, camera: &str, fenced: bool) {
+        let labels = [("scene", scene), ("camera", camera)];
+        self.recorder
+            .register_gauge(&key("crossview_camera_fenced", &labels), &META)
+            .set(if fenced { 1.0 } else { 0.0 });
+        if fenced {
+            self.inc("crossview_camera_fences_total", &labels);
+        }
+    }
+
     /// `--auto-align` changed a camera's clock offset.
     pub(crate) fn clock_aligned(&self, scene: &str, camera: &str) {
         self.inc(

@@ -63,6 +63,7 @@ def result_from_pb(r: pb.FrameResult) -> FrameResult:
         frame_id=r.frame_id,
         complete=r.complete,
         missing_cameras=tuple(r.missing_cameras),
+        fenced_cameras=tuple(r.fenced_cameras),
         identities=tuple(
             Identity(
                 id=i.id,
@@ -152,6 +153,7 @@ def result_from_json(obj: object) -> FrameResult:
         frame_id=int(r["frame_id"]),
         complete=bool(r["complete"]),
         missing_cameras=tuple(str(c) for c in r.get("missing_cameras") or ()),
+        fenced_cameras=tuple(str(c) for c in r.get("fenced_cameras") or ()),
         identities=tuple(
             Identity(
                 id=int(i["id"]),

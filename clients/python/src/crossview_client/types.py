@@ -184,6 +184,8 @@ class FrameResult:
     model_version: str | None = None
     error: str | None = None
     error_kind: str | None = None
+    #: Cameras left out of association because they no longer fit the model (they moved).
+    fenced_cameras: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)

@@ -149,6 +149,7 @@ impl ClockWatch {
         state: Latest<ClockEstimate>,
         fit: Latest<FitEstimate>,
         offsets: Offsets,
+        fence: super::fit::Fence,
     ) -> Option<Self> {
         if config.window == 0 {
             return None;
@@ -163,7 +164,8 @@ impl ClockWatch {
                     state,
                     offsets,
                 };
-                let mut fit = FitReporter::new(watched.cameras.len(), fit);
+                let fence = config.fence.then_some(fence);
+                let mut fit = FitReporter::new(watched.cameras.len(), fit, fence);
                 watch(&watched, config, &shared, &mut fit, &rx);
             });
         if let Err(e) = spawned {

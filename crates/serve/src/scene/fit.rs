@@ -4,6 +4,7 @@
 //! `crossview_camera_fit{scene,camera}` and `crossview_camera_fit_state{scene,camera,state}`
 //! gauges, and as one log line per change of state (a warning when a camera stops fitting).
 //! No extra matching: the profiles keep their per-frame costs.
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
 use crossview_api::types::{CameraFitState, FitEstimate};
@@ -14,27 +15,53 @@ use crossview_core::offsets::{CameraSeries, PairProfile};
 use super::lock;
 use crate::metrics::Metrics;
 
+/// Per camera, whether it is fenced: left out of association because it does not fit. The
+/// watch thread writes it, the worker reads it for each frame.
+pub(super) type Fence = Arc<[AtomicBool]>;
+
+/// A fence of `cameras` cameras, none fenced.
+pub(super) fn fence(cameras: usize) -> Fence {
+    (0..cameras).map(|_| AtomicBool::new(false)).collect()
+}
+
+/// The cameras fenced now.
+pub(super) fn fenced(fence: &Fence) -> Vec<bool> {
+    fence.iter().map(|f| f.load(Ordering::Acquire)).collect()
+}
+
 /// The fit side of a scene's watch thread.
 pub(super) struct FitReporter {
     watch: FitWatch,
     state: Arc<Mutex<Option<FitEstimate>>>,
+    /// Where the cameras that do not fit are fenced (`None`: `--fence-moved-cameras false`).
+    fence: Option<Fence>,
     /// Each camera's state as last published.
     published: Vec<FitState>,
 }
 
 impl FitReporter {
-    /// A reporter for `cameras` cameras that writes each look into `state`.
-    pub(super) fn new(cameras: usize, state: Arc<Mutex<Option<FitEstimate>>>) -> Self {
+    /// A reporter for `cameras` cameras that writes each look into `state` and, with `fence`,
+    /// fences the cameras that do not fit.
+    pub(super) fn new(
+        cameras: usize,
+        state: Arc<Mutex<Option<FitEstimate>>>,
+        fence: Option<Fence>,
+    ) -> Self {
         FitReporter {
             watch: FitWatch::new(cameras, FitConfig::default()),
             state,
+            fence,
             published: vec![FitState::Unknown; cameras],
         }
     }
 
-    /// Forgets the baselines (a new model).
+    /// Forgets the baselines (a new model) and lifts every fence: the new model is judged
+    /// afresh.
     pub(super) fn reset(&mut self) {
         self.watch.reset();
+        if let Some(fence) = &self.fence {
+            fence.iter().for_each(|f| f.store(false, Ordering::Release));
+        }
     }
 
     /// One look at the window `series` (frame ids `ids`, oldest first) from the pairs'
@@ -70,6 +97,18 @@ impl FitReporter {
         for (f, was) in fits.iter().zip(&mut self.published) {
             let camera = &spec.cameras[f.camera].name;
             metrics.camera_fit(&spec.name, camera, f.score, f.state.as_str());
+            if let Some(fence) = &self.fence {
+                let fenced = f.state == FitState::DoesNotFit;
+                if fence[f.camera].swap(fenced, Ordering::AcqRel) != fenced {
+                    metrics.camera_fenced(&spec.name, camera, fenced);
+                    if fenced {
+                        tracing::warn!(scene = %spec.name, camera = %camera,
+                            "camera fenced: left out of association until it fits again");
+                    } else {
+                        tracing::info!(scene = %spec.name, camera = %camera, "camera fence lifted");
+                    }
+                }
+            }
             if f.state == *was {
                 continue;
             }

@@ -157,6 +157,7 @@ impl Scene {
         let published = Arc::new(AtomicU64::new(0));
         let clock = Arc::new(Mutex::new(None));
         let fit = Arc::new(Mutex::new(None));
+        let fence = fit::fence(n);
         let offsets: clock::Offsets = spec
             .cameras
             .iter()
@@ -180,7 +181,10 @@ impl Scene {
                 clock.clone(),
                 fit.clone(),
                 offsets.clone(),
+                fence.clone(),
             ),
+            fenced: fence,
+            fenced_now: Vec::new(),
         };
         let handle = std::thread::Builder::new()
             .name(format!("encoder-{}", spec.name))

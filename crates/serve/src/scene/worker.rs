@@ -15,7 +15,7 @@ use tokio::sync::{broadcast, oneshot};
 
 use crossview_api::convert::{frame_boxes, identity_out};
 use crossview_api::types::{FrameResult, FrameWithBoxes, IdentityOut, ResultStatus};
-use crossview_core::association::{embed_frame, frame_identities};
+use crossview_core::association::{embed_frame, frame_identities_fenced};
 use crossview_core::identity::Identity;
 use crossview_core::tracking::Tracker;
 use crossview_core::{Encoder, Frame, FrameEmbeddings, SceneSpec};
@@ -71,6 +71,11 @@ pub(super) struct Worker {
     pub(super) tracker: Option<Tracker>,
     /// The live clock watch (`None`: off).
     pub(super) clock: Option<super::clock::ClockWatch>,
+    /// Cameras the watch found no longer fitting the model, left out of association
+    /// (`--fence-moved-cameras`; all false when off).
+    pub(super) fenced: super::fit::Fence,
+    /// The cameras fenced when the frame being served was associated (what its result says).
+    pub(super) fenced_now: Vec<bool>,
 }
 
 impl Worker {
@@ -111,6 +116,7 @@ impl Worker {
                     started,
                     reply,
                 } => {
+                    self.fenced_now.clear();
                     // The caller counts the error (the service does, once).
                     let r = self.associate_in_time(&frame, started).map(|(ids, _)| {
                         let spec = &self.spec;
@@ -153,6 +159,7 @@ impl Worker {
         first_seen: Instant,
         deadline_from: Instant,
     ) -> (FrameResult, Option<FrameEmbeddings>) {
+        self.fenced_now.clear();
         if self.model.is_none() {
             self.metrics.unassociated(&self.spec.name);
             let mut r = self.result(frame, first_seen, Vec::new());
@@ -233,10 +240,12 @@ impl Worker {
         let t = Instant::now();
         let encoder = model.encoder.as_mut();
         let config = &model.info.association;
+        self.fenced_now = super::fit::fenced(&self.fenced);
+        let fenced = &self.fenced_now;
         let outcome: crossview_core::Result<_> =
             std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
                 let embeddings = embed_frame(encoder, spec, frame)?;
-                let identities = frame_identities(frame, &embeddings, config);
+                let identities = frame_identities_fenced(frame, &embeddings, config, fenced);
                 Ok((identities, embeddings))
             }))
             .unwrap_or_else(|_| Err(crossview_core::Error::internal("association panicked")));
@@ -268,6 +277,13 @@ impl Worker {
                 .zip(&spec.cameras)
                 .filter(|(v, _)| v.is_none())
                 .map(|(_, c)| c.name.clone())
+                .collect(),
+            fenced_cameras: spec
+                .cameras
+                .iter()
+                .zip(&self.fenced_now)
+                .filter(|(_, f)| **f)
+                .map(|(c, _)| c.name.clone())
                 .collect(),
             identities,
             latency_ms: started.elapsed().as_secs_f64() * 1e3,

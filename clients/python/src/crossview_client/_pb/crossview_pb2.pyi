@@ -109,7 +109,7 @@ class Identity(_message.Message):
     def __init__(self, id: _Optional[int] = ..., confidence: _Optional[float] = ..., members: _Optional[_Iterable[_Union[Member, _Mapping]]] = ..., track_id: _Optional[int] = ...) -> None: ...
 
 class FrameResult(_message.Message):
-    __slots__ = ("scene", "frame_id", "complete", "missing_cameras", "identities", "latency_ms", "error", "error_kind", "status", "model_version")
+    __slots__ = ("scene", "frame_id", "complete", "missing_cameras", "identities", "latency_ms", "error", "error_kind", "status", "model_version", "fenced_cameras")
     SCENE_FIELD_NUMBER: _ClassVar[int]
     FRAME_ID_FIELD_NUMBER: _ClassVar[int]
     COMPLETE_FIELD_NUMBER: _ClassVar[int]
@@ -120,6 +120,7 @@ class FrameResult(_message.Message):
     ERROR_KIND_FIELD_NUMBER: _ClassVar[int]
     STATUS_FIELD_NUMBER: _ClassVar[int]
     MODEL_VERSION_FIELD_NUMBER: _ClassVar[int]
+    FENCED_CAMERAS_FIELD_NUMBER: _ClassVar[int]
     scene: str
     frame_id: int
     complete: bool
@@ -130,7 +131,8 @@ class FrameResult(_message.Message):
     error_kind: str
     status: ResultStatus
     model_version: str
-    def __init__(self, scene: _Optional[str] = ..., frame_id: _Optional[int] = ..., complete: _Optional[bool] = ..., missing_cameras: _Optional[_Iterable[str]] = ..., identities: _Optional[_Iterable[_Union[Identity, _Mapping]]] = ..., latency_ms: _Optional[float] = ..., error: _Optional[str] = ..., error_kind: _Optional[str] = ..., status: _Optional[_Union[ResultStatus, str]] = ..., model_version: _Optional[str] = ...) -> None: ...
+    fenced_cameras: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, scene: _Optional[str] = ..., frame_id: _Optional[int] = ..., complete: _Optional[bool] = ..., missing_cameras: _Optional[_Iterable[str]] = ..., identities: _Optional[_Iterable[_Union[Identity, _Mapping]]] = ..., latency_ms: _Optional[float] = ..., error: _Optional[str] = ..., error_kind: _Optional[str] = ..., status: _Optional[_Union[ResultStatus, str]] = ..., model_version: _Optional[str] = ..., fenced_cameras: _Optional[_Iterable[str]] = ...) -> None: ...
 
 class StreamResponse(_message.Message):
     __slots__ = ("ack", "result")

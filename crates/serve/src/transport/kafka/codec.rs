@@ -120,6 +120,7 @@ mod tests {
             frame_id: 7,
             complete: false,
             missing_cameras: vec!["c1".into()],
+            fenced_cameras: vec![],
             identities: vec![],
             latency_ms: 3.5,
             error: None,
