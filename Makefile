@@ -57,8 +57,9 @@ smoke: setup
 	bash deploy/smoke.sh
 
 ## demo: the newcomer's tour — the real server in-process with models/demo.onnx, a simulated
-## 4-camera scene streamed into it over gRPC, identities and running accuracy per frame.
-## Options pass through DEMO_ARGS, e.g. `make demo DEMO_ARGS="--frames 300 --noisy"`.
+## 4-camera scene streamed into it over gRPC, identities and running accuracy per frame; halfway
+## a camera is bumped and fenced; the viewer stays up until Ctrl-C.
+## Options pass through DEMO_ARGS, e.g. `make demo DEMO_ARGS="--frames 300 --noisy --exit"`.
 demo: setup
 	cargo build --release
 	./target/release/crossview demo $(DEMO_ARGS)

@@ -1,16 +1,24 @@
 //! `crossview demo`: the newcomer's tour. Starts the real server in-process on a loopback port
 //! with the built-in model (or talks to a running one with `--server`), streams a simulated
 //! multi-camera scene into it over gRPC and prints each frame's identities with the running
-//! SPEC §5 accuracy against the simulator's ground truth, then shuts the server down.
+//! SPEC §5 accuracy against the simulator's ground truth. Midway one camera is bumped (a real
+//! change of its simulated pose): the server notices that it no longer fits the model and fences
+//! it, and the running accuracy of the other cameras holds. The in-process server then keeps
+//! serving the viewer until Ctrl-C (`--exit`: shut down at once).
 use std::io::Write;
 use std::time::Duration;
 
 use anyhow::Context;
 use clap::Args;
 
+use super::simulate::parse_move;
 use crate::demo::{DemoConfig, DemoSummary, FrameReport, start_local_server, stream_scene};
 use crossview_data::sim::{DetectorNoise, SimConfig};
 use crossview_serve::{ModelSpec, ServeConfig};
+
+/// The in-process server's clock watch looks this often (the server's default is 10 s): the
+/// demo's bumped camera is named and fenced within seconds.
+const DEMO_WATCH_INTERVAL: Duration = Duration::from_secs(2);
 
 /// Stream a simulated scene through the server and watch the association live.
 #[derive(Debug, Args)]
@@ -34,8 +42,24 @@ pub struct DemoArgs {
     #[arg(long, env = "CROSSVIEW_DEMO_PRESET", default_value = "square4")]
     pub preset: String,
     /// Frames to stream before stopping (Ctrl-C stops earlier).
-    #[arg(long, env = "CROSSVIEW_DEMO_FRAMES", default_value_t = 150)]
+    #[arg(long, env = "CROSSVIEW_DEMO_FRAMES", default_value_t = 600)]
     pub frames: u64,
+    /// Move a camera mid-stream, as `crossview simulate --move` does
+    /// (`CAMERA@SECONDS:pan=P,tilt=T,zoom=Z`; repeatable) [default: the second camera panned
+    /// by 5 % of the width halfway through, when the scene has at least three cameras].
+    #[arg(
+        long = "move",
+        value_name = "CAMERA@SECONDS:CHANGES",
+        conflicts_with = "no_move"
+    )]
+    pub moves: Vec<String>,
+    /// No camera moves.
+    #[arg(long, env = "CROSSVIEW_DEMO_NO_MOVE")]
+    pub no_move: bool,
+    /// Shut the in-process server down once the stream is done, instead of serving the viewer
+    /// until Ctrl-C.
+    #[arg(long, env = "CROSSVIEW_DEMO_EXIT")]
+    pub exit: bool,
     /// Simulator seed (models/demo.onnx was trained on seed 1, validated on seed 2, tested on seed 3).
     #[arg(long, env = "CROSSVIEW_DEMO_SEED", default_value_t = 7)]
     pub seed: u64,
@@ -59,13 +83,21 @@ fn pct(x: f64) -> String {
 /// One line per frame.
 fn frame_line(r: &FrameReport) -> String {
     format!(
-        "frame {:>5} | boxes {:>3} | identities {:>3} ({:>2} multi-view, {:>3} links){} | frame ACC {} | running P {} R {} ACC {} IPAA-100 {} | {:>6.1} ms",
+        "frame {:>5} | boxes {:>3} | identities {:>3} ({:>2} multi-view, {:>3} links){}{} | frame ACC {} | running P {} R {} ACC {} IPAA-100 {} | {:>6.1} ms",
         r.frame_id,
         r.boxes,
         r.identities,
         r.multi_view,
         r.links,
         if r.complete { "" } else { " partial" },
+        if r.fenced.is_empty() {
+            String::new()
+        } else {
+            format!(
+                " | fenced: {} (moved; scored without it)",
+                r.fenced.join(", ")
+            )
+        },
         pct(r.frame.acc),
         pct(r.running.precision),
         pct(r.running.recall),
@@ -106,6 +138,23 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         sim.detector = DetectorNoise::none();
         sim.render.shrink_occluded = false;
     }
+    sim.moves = if args.no_move {
+        Vec::new()
+    } else if args.moves.is_empty() {
+        default_move(&sim).into_iter().collect()
+    } else {
+        args.moves
+            .iter()
+            .map(|m| parse_move(&sim.scene, m))
+            .collect::<anyhow::Result<_>>()?
+    };
+    for m in &sim.moves {
+        println!(
+            "crossview demo: camera '{}' will be bumped {:.0} s in (pan {:.1}°, tilt {:.1}°, zoom {:.2}×); \
+             the server should notice it no longer fits the model and fence it (--no-move: none)",
+            m.camera, m.at_s, m.pan_deg, m.tilt_deg, m.zoom
+        );
+    }
     let pace = (args.fps > 0.0).then(|| Duration::from_secs_f64(1.0 / args.fps));
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -124,6 +173,9 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
                 };
                 println!("crossview demo: streaming {} frames of '{}' to {url}, scene '{}'", args.frames, args.preset, cfg.scene);
                 let summary = stream_scene(url, &cfg, stop, print_frame).await?;
+                if !cfg.sim.moves.is_empty() {
+                    println!("crossview demo: the fence shows once the server's clock watch has looked (every --clock-watch-interval)");
+                }
                 println!("{}", summary_text(&summary));
                 Ok(())
             }
@@ -136,10 +188,11 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
                     );
                 }
                 let scene = args.scene.clone().unwrap_or_else(|| spec.name.clone());
-                let config = ServeConfig {
+                let mut config = ServeConfig {
                     models: vec![spec],
                     ..ServeConfig::default()
                 };
+                config.limits.clock_watch.interval = DEMO_WATCH_INTERVAL;
                 let server = start_local_server(config, &args.listen).await?;
                 let endpoint = server.endpoint();
                 println!(
@@ -149,15 +202,42 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
                 println!("crossview demo: watch it in a browser at {endpoint}/ (the live viewer; --listen 127.0.0.1:8080 for a fixed port)");
                 let cfg = DemoConfig { sim, scene, pace };
                 let outcome = stream_scene(&endpoint, &cfg, stop, print_frame).await;
+                if let Ok(summary) = &outcome {
+                    println!("{}", summary_text(summary));
+                    if !args.exit && !summary.interrupted {
+                        println!(
+                            "crossview demo: the server keeps serving the viewer at {endpoint}/ \
+                             until Ctrl-C (--exit: stop now)"
+                        );
+                        let _ = tokio::signal::ctrl_c().await;
+                    }
+                }
                 // Shut the server down whatever happened to the stream.
                 let down = server.shutdown().await;
-                let summary = outcome?;
+                outcome?;
                 down.context("server shutdown")?;
-                println!("{}", summary_text(&summary));
                 println!("server shut down cleanly");
                 Ok(())
             }
         }
+    })
+}
+
+/// The demo's bump: the second camera panned by 5 % of the width halfway through the stream,
+/// when the scene has at least three cameras (the fit needs a majority that still fits).
+fn default_move(sim: &SimConfig) -> Option<crossview_data::sim::CameraMove> {
+    let camera = sim
+        .scene
+        .cameras
+        .get(1)
+        .filter(|_| sim.scene.cameras.len() >= 3)?;
+    Some(crossview_data::sim::CameraMove {
+        camera: camera.name.clone(),
+        // Simulated seconds: frame index / the simulator's rate.
+        at_s: sim.frames as f64 / sim.fps / 2.0,
+        pan_deg: crossview_data::sim::CameraMove::pan_for(0.05, camera.width, camera.focal_px),
+        tilt_deg: 0.0,
+        zoom: 1.0,
     })
 }
 

@@ -141,7 +141,7 @@ impl SimulateArgs {
 }
 
 /// `CAMERA@SECONDS:pan=P,tilt=T,zoom=Z` → a [`CameraMove`] of a camera of `scene`.
-fn parse_move(scene: &SceneConfig, spec: &str) -> anyhow::Result<CameraMove> {
+pub(crate) fn parse_move(scene: &SceneConfig, spec: &str) -> anyhow::Result<CameraMove> {
     let bad = || anyhow::anyhow!("--move wants CAMERA@SECONDS:pan=P,tilt=T,zoom=Z, got '{spec}'");
     let (camera, rest) = spec.split_once('@').ok_or_else(bad)?;
     let (at, changes) = rest.split_once(':').ok_or_else(bad)?;

@@ -62,6 +62,9 @@ pub struct FrameReport {
     pub frame: Metrics,
     /// SPEC §5 metrics over all frames so far.
     pub running: Metrics,
+    /// Cameras the server fenced in this frame (they no longer fit the model): left out of
+    /// the score, as the server left them out of association.
+    pub fenced: Vec<String>,
 }
 
 /// How a demo run ended.
@@ -182,7 +185,7 @@ pub async fn stream_scene(
     let mut interrupted = false;
     tokio::pin!(stop);
     while let Some(frame) = sim.next_frame() {
-        let truth = truth_ids.of_frame(&frame);
+        let mut truth = truth_ids.of_frame(&frame);
         for batch in frame_batches(&cfg.scene, &spec, &frame) {
             tx.send(batch)
                 .await
@@ -198,7 +201,22 @@ pub async fn stream_scene(
                 frame.frame_id, result.error
             )));
         }
-        let identities: Vec<Identity> = result.identities.iter().map(identity_from_pb).collect();
+        // A fenced camera is scored as the server treated it: as absent.
+        for (t, name) in truth.iter_mut().zip(&cameras) {
+            if result.fenced_cameras.contains(name) {
+                *t = None;
+            }
+        }
+        let identities: Vec<Identity> = result
+            .identities
+            .iter()
+            .filter(|i| {
+                !i.members
+                    .iter()
+                    .any(|m| result.fenced_cameras.contains(&m.camera))
+            })
+            .map(identity_from_pb)
+            .collect();
         let records = pair_records(frame.frame_id, &cameras, &truth, &identities)?;
         let (frame_m, running) = score.add_frame(records);
         frames += 1;
@@ -212,6 +230,7 @@ pub async fn stream_scene(
             latency_ms: result.latency_ms,
             frame: frame_m,
             running,
+            fenced: result.fenced_cameras.clone(),
         });
         if let Some(pace) = cfg.pace {
             tokio::select! {

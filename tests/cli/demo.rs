@@ -51,7 +51,7 @@ fn the_demo_command_streams_frames_and_shows_identities_and_running_accuracy() {
     let dir = tempfile::tempdir().unwrap();
     let model = square4_model(dir.path());
     let out = Command::new(env!("CARGO_BIN_EXE_crossview"))
-        .args(["demo", "--frames", "4", "--fps", "0", "--model"])
+        .args(["demo", "--frames", "4", "--fps", "0", "--exit", "--model"])
         .arg(&model)
         .env("RUST_LOG", "warn")
         .output()
@@ -66,6 +66,9 @@ fn the_demo_command_streams_frames_and_shows_identities_and_running_accuracy() {
         assert!(line.contains("running P") && line.contains("ACC"), "{line}");
     }
     assert!(stdout.contains("done after 4 frames"), "{stdout}");
+    // Halfway the second camera is bumped (the server's fit would fence it; too few frames
+    // here for a look: tests/serve/camera_fit.rs shows the fence).
+    assert!(stdout.contains("camera 'cam1' will be bumped"), "{stdout}");
     assert!(stdout.contains("server shut down cleanly"), "{stdout}");
 }
 
@@ -82,6 +85,12 @@ fn the_demo_command_refuses_a_model_of_another_scene() {
     assert!(!out.status.success());
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("cameras"), "{stderr}");
+    let out = Command::new(env!("CARGO_BIN_EXE_crossview"))
+        .args(["demo", "--move", "nobody@1:pan=2", "--exit"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("no camera 'nobody'"));
     let out = Command::new(env!("CARGO_BIN_EXE_crossview"))
         .args(["demo", "--model", "/nonexistent/model.onnx"])
         .output()
