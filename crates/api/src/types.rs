@@ -22,8 +22,9 @@ pub struct CameraView {
 /// scene absent from `views` count as missing. Unknown fields are ignored (see [`CameraView`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct AssociateRequest {
-    /// The frame id echoed in the result (default 0).
-    #[serde(default)]
+    /// The frame id echoed in the result (default 0): a whole number within `0..=2^64 − 1`.
+    #[serde(default, deserialize_with = "crossview_core::integral::u64")]
+    #[schema(minimum = 0, maximum = 18446744073709551615_u64)]
     pub frame_id: u64,
     /// One entry per reporting camera.
     pub views: Vec<CameraView>,

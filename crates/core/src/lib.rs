@@ -12,6 +12,7 @@ pub mod embeddings;
 mod error;
 pub mod fit;
 pub mod identity;
+pub mod integral;
 pub(crate) mod lsa;
 pub mod matching;
 pub mod offsets;

@@ -143,7 +143,15 @@ pub struct Detection {
     )]
     pub score: f32,
     /// Ground-truth identity (evaluation only; never used by training or inference).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::integral::option_u64"
+    )]
+    #[cfg_attr(
+        feature = "openapi",
+        schema(minimum = 0, maximum = 18446744073709551615_u64)
+    )]
     pub id: Option<u64>,
     /// Optional Re-ID appearance vector; all vectors of a scene share one length.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -287,7 +295,13 @@ pub struct BatchLine<'a> {
 pub struct Batch {
     /// The camera's name in its scene.
     pub camera: String,
-    /// The camera's frame id (its own clock; see [`CameraSpec::offset`]).
+    /// The camera's frame id (its own clock; see [`CameraSpec::offset`]): a whole number
+    /// within `0..=2^64 − 1` (`7` or `7.0`).
+    #[serde(deserialize_with = "crate::integral::u64")]
+    #[cfg_attr(
+        feature = "openapi",
+        schema(minimum = 0, maximum = 18446744073709551615_u64)
+    )]
     pub frame_id: u64,
     /// The boxes the camera saw (none: it saw nobody).
     pub detections: Vec<Detection>,
