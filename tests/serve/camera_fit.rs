@@ -145,6 +145,12 @@ async fn a_camera_that_turns_stops_fitting_and_a_late_clock_does_not() {
     // The clock watch still sees the late camera's offset: an offset stays an offset.
     let d = server.get_json("/v1/scenes/demo").await;
     assert_eq!(d["clock"]["cameras"][LAGGING]["offset_ids"], LAG, "{d}");
+    // And a move is never an offset: the turned camera's is unknown while it does not fit.
+    let turned = &d["clock"]["cameras"][MOVED];
+    assert!(
+        turned["offset_ids"].is_null() && turned["confidence"] == 0.0,
+        "{d}"
+    );
     // The same over gRPC and in the metrics.
     let scene = server
         .grpc()

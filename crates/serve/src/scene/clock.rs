@@ -247,9 +247,17 @@ fn watch(
         let counts: Vec<usize> = window.series.iter().map(CameraSeries::len).collect();
         let found = solve(window.series.len(), &pairs, &counts, step, None, &offsets);
         let ids: Vec<i64> = window.ids.iter().copied().collect();
-        fit.look(spec, &shared.metrics, &window.series, &ids, &pairs);
+        let in_doubt = fit.look(spec, &shared.metrics, &window.series, &ids, &pairs);
         shared.metrics.clock_estimate(&spec.name, t.elapsed());
-        let report = describe(spec, &found, window.ids.len(), window.as_of);
+        let mut report = describe(spec, &found, window.ids.len(), window.as_of);
+        // A camera that moved is never reported (nor auto-aligned) as a clock offset.
+        for (camera, doubt) in report.cameras.iter_mut().zip(in_doubt) {
+            if doubt {
+                camera.offset_frames = None;
+                camera.offset_ids = None;
+                camera.confidence = 0.0;
+            }
+        }
         report_changes(spec, &report, &shared.metrics, &mut flagged);
         if config.auto_align && window.ids.len() >= config.window {
             let now = proposal(&report);

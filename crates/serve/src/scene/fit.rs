@@ -65,7 +65,9 @@ impl FitReporter {
     }
 
     /// One look at the window `series` (frame ids `ids`, oldest first) from the pairs'
-    /// `profiles` just computed for the clock estimate.
+    /// `profiles` just computed for the clock estimate. Returns, per camera, whether its fit
+    /// is in doubt (drifting or does not fit): its clock offset is then not to be trusted (a
+    /// camera that moved can put its profiles' minimum anywhere).
     pub(super) fn look(
         &mut self,
         spec: &SceneSpec,
@@ -73,10 +75,10 @@ impl FitReporter {
         series: &[CameraSeries],
         ids: &[i64],
         profiles: &[(usize, usize, PairProfile)],
-    ) {
+    ) -> Vec<bool> {
         let cfg = *self.watch.config();
         let Some(&since) = ids.get(ids.len().saturating_sub(cfg.recent)) else {
-            return;
+            return vec![false; spec.cameras.len()];
         };
         let pairs: Vec<_> = profiles
             .iter()
@@ -90,6 +92,9 @@ impl FitReporter {
         self.report(spec, metrics, &fits);
         let as_of = ids.last().and_then(|&t| u64::try_from(t).ok()).unwrap_or(0);
         *lock(&self.state) = Some(describe(spec, &fits, ids.len().min(cfg.recent), as_of));
+        fits.iter()
+            .map(|f| matches!(f.state, FitState::Drifting | FitState::DoesNotFit))
+            .collect()
     }
 
     /// Sets the gauges and logs each change of state.
