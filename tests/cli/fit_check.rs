@@ -25,25 +25,24 @@ fn simulate_frames(dir: &std::path::Path, name: &str, frames: &str, extra: &[&st
     rec
 }
 
+/// `crossview fit-check` with the shipped demo model on `rec`, `extra` arguments after; its
+/// standard output.
+fn fit_check(rec: &str, extra: &[&str]) -> String {
+    let model = repo_root().join("models/demo.onnx");
+    let mut args = vec![
+        "fit-check",
+        "--model",
+        model.to_str().unwrap(),
+        "--data",
+        rec,
+    ];
+    args.extend_from_slice(extra);
+    run_crossview(BIN, &args, &[("CROSSVIEW_WORKERS", "2")])
+}
+
 /// Every look of `fit-check --json`: per look, the newest frame id and each camera's state.
 fn looks(rec: &str) -> Vec<(i64, Vec<String>)> {
-    let model = repo_root().join("models/demo.onnx");
-    let out = run_crossview(
-        BIN,
-        &[
-            "fit-check",
-            "--model",
-            model.to_str().unwrap(),
-            "--data",
-            rec,
-            "--window",
-            "200",
-            "--every",
-            "20",
-            "--json",
-        ],
-        &[("CROSSVIEW_WORKERS", "2")],
-    );
+    let out = fit_check(rec, &["--window", "200", "--every", "20", "--json"]);
     out.lines()
         .map(|l| {
             let look: Value = serde_json::from_str(l).unwrap();
@@ -89,18 +88,7 @@ fn fit_check_names_the_camera_that_zoomed_and_only_it() {
 fn the_table_marks_a_camera_that_does_not_fit() {
     let dir = tempfile::tempdir().unwrap();
     let zoomed = simulate(dir.path(), "zoomed.jsonl", &["--move", "cam0@20:pan=-5%"]);
-    let model = repo_root().join("models/demo.onnx");
-    let table = run_crossview(
-        BIN,
-        &[
-            "fit-check",
-            "--model",
-            model.to_str().unwrap(),
-            "--data",
-            &zoomed,
-        ],
-        &[("CROSSVIEW_WORKERS", "2")],
-    );
+    let table = fit_check(&zoomed, &[]);
     let last = table.lines().last().unwrap();
     assert!(last.trim_start().starts_with("399"), "{table}");
     let cells: Vec<&str> = last.split_whitespace().collect();

@@ -7,7 +7,6 @@
 //! order.
 use std::time::Duration;
 
-use crossview_api::pb;
 use crossview_core::Batch;
 use crossview_data::sim::{CameraMove, SimConfig, Simulator};
 use crossview_serve::ServeConfig;
@@ -152,15 +151,7 @@ async fn a_camera_that_turns_stops_fitting_and_a_late_clock_does_not() {
         "{d}"
     );
     // The same over gRPC and in the metrics.
-    let scene = server
-        .grpc()
-        .await
-        .get_scene(pb::GetSceneRequest {
-            scene: "demo".into(),
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let scene = server.scene("demo").await;
     let fit = scene.fit.expect("fit over gRPC");
     assert_eq!(fit.cameras[MOVED].state, "does_not_fit");
     assert!(fit.cameras[MOVED].known && fit.cameras[MOVED].score < 0.7);

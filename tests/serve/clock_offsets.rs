@@ -217,15 +217,7 @@ async fn a_late_camera_is_measured_live_and_corrected_by_its_declared_offset() {
     let frames = cams[LAGGING]["offset_frames"].as_f64().unwrap();
     assert!((frames - LAG as f64).abs() < 0.5, "{d}");
     // The same over gRPC and in the metrics.
-    let scene = server
-        .grpc()
-        .await
-        .get_scene(pb::GetSceneRequest {
-            scene: "demo".into(),
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let scene = server.scene("demo").await;
     let clock = scene.clock.expect("clock estimate over gRPC");
     assert!(clock.cameras[LAGGING].known);
     assert_eq!(clock.cameras[LAGGING].offset_ids, LAG as i64);

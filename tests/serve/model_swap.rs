@@ -49,18 +49,6 @@ fn replace_model(dir: &Path, seed: u64, cameras: Vec<CameraSpec>) {
     std::fs::rename(new, dir.join("lab.onnx")).unwrap();
 }
 
-async fn subscribe(server: &TestServer) -> tonic::Streaming<pb::FrameResult> {
-    server
-        .grpc()
-        .await
-        .subscribe(pb::SubscribeRequest {
-            scene: "lab".into(),
-        })
-        .await
-        .unwrap()
-        .into_inner()
-}
-
 async fn scene_version(http: &reqwest::Client, server: &TestServer) -> Option<String> {
     let v: serde_json::Value = http
         .get(server.url("/v1/scenes/lab"))
@@ -79,7 +67,7 @@ async fn a_swap_under_load_loses_nothing_and_every_result_names_its_version() {
     let http = reqwest::Client::new();
     let old = scene_version(&http, &server).await.expect("a model");
     assert!(old.starts_with("test-1@"), "{old}");
-    let mut results = subscribe(&server).await;
+    let mut results = server.subscribe("lab").await;
     // Frames keep arriving while the new file is written and reloaded.
     let frames = 60u64;
     let pusher = {
@@ -174,7 +162,7 @@ async fn corrupt_and_foreign_models_are_refused_and_the_old_one_keeps_serving() 
     let server = start(|_| {}).await;
     let http = reqwest::Client::new();
     let old = scene_version(&http, &server).await.unwrap();
-    let mut results = subscribe(&server).await;
+    let mut results = server.subscribe("lab").await;
 
     // A torn, corrupt file.
     let bytes = std::fs::read(server.dir.path().join("lab.onnx")).unwrap();
@@ -246,7 +234,7 @@ async fn a_declared_scene_publishes_no_model_results_until_its_model_arrives() {
     .await;
     let http = reqwest::Client::new();
     assert_eq!(scene_version(&http, &server).await, None);
-    let mut results = subscribe(&server).await;
+    let mut results = server.subscribe("lab").await;
 
     push_frame(&server, 1).await;
     let r = guard("no-model result", results.next())

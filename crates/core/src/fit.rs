@@ -17,7 +17,7 @@
 //! the two cameras overlap, so one global level cannot tell). Pure and single-threaded.
 use serde::Serialize;
 
-use crate::offsets::PairProfile;
+use crate::offsets::{PairProfile, column_means};
 
 /// A pair's contrast over the newest frames of a profile.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -41,30 +41,19 @@ pub struct PairContrast {
 pub fn contrast(profile: &PairProfile, since: i64, min_frames: usize) -> Option<PairContrast> {
     let first = profile.frames.partition_point(|&t| t < since);
     let rows = profile.values.slice(ndarray::s![first.., ..]);
-    let mut costs = Vec::with_capacity(rows.ncols());
-    for column in rows.columns() {
-        let (n, sum) = column
-            .iter()
-            .filter(|v| v.is_finite())
-            .fold((0usize, 0f64), |(n, s), &v| (n + 1, s + f64::from(v)));
-        costs.push((n >= min_frames.max(1)).then(|| ((sum / n as f64) as f32, n)));
-    }
-    let (best, &(low, frames)) = costs
+    let costs = column_means(rows, min_frames);
+    let (best, low, frames) = costs
         .iter()
         .enumerate()
-        .filter_map(|(j, c)| c.as_ref().map(|c| (j, c)))
-        .min_by(|x, y| x.1.0.total_cmp(&y.1.0))?;
+        .filter_map(|(j, &(mean, n))| mean.map(|m| (j, m, n)))
+        .min_by(|x, y| x.1.total_cmp(&y.1))?;
     let mut far: Vec<f32> = costs
         .iter()
         .enumerate()
         .filter(|(j, _)| j.abs_diff(best) >= 2)
-        .filter_map(|(_, c)| c.map(|c| c.0))
+        .filter_map(|(_, c)| c.0)
         .collect();
-    if far.is_empty() {
-        return None;
-    }
-    far.sort_unstable_by(f32::total_cmp);
-    let median = far[far.len() / 2];
+    let median = upper_median(&mut far)?;
     let contrast = if median > 0.0 {
         (1.0 - low / median).clamp(0.0, 1.0)
     } else {
@@ -77,6 +66,13 @@ pub fn contrast(profile: &PairProfile, since: i64, min_frames: usize) -> Option<
         delta: profile.shifts[best],
         frames,
     })
+}
+
+/// The upper median of `values` (the middle one, or the higher of the two middle ones);
+/// `None` when empty. Sorts `values`.
+fn upper_median(values: &mut [f32]) -> Option<f32> {
+    values.sort_unstable_by(f32::total_cmp);
+    values.get(values.len() / 2).copied()
 }
 
 /// Settings of the fit (chosen on the WILDTRACK training frames and the simulator:
@@ -255,8 +251,7 @@ impl FitWatch {
                 .filter(|((a, b), _)| !aside[*a] && !aside[*b])
                 .filter_map(|(_, r)| r.map(|r| r.0))
                 .collect();
-            all.sort_unstable_by(f32::total_cmp);
-            let scene = all.get(all.len() / 2).copied().filter(|g| *g > 0.0);
+            let scene = upper_median(&mut all).filter(|g| *g > 0.0);
             for (c, score) in scores.iter_mut().enumerate() {
                 if aside[c] {
                     continue;

@@ -215,6 +215,18 @@ impl TestServer {
         )
     }
 
+    /// `scene`'s description over gRPC `GetScene` (its own connection); panics on a refusal.
+    pub async fn scene(&self, scene: &str) -> pb::Scene {
+        self.grpc()
+            .await
+            .get_scene(pb::GetSceneRequest {
+                scene: scene.into(),
+            })
+            .await
+            .expect("GetScene")
+            .into_inner()
+    }
+
     /// Subscribes to `scene`'s results over gRPC (its own connection); panics on a refusal.
     pub async fn subscribe(&self, scene: &str) -> tonic::Streaming<pb::FrameResult> {
         self.grpc()

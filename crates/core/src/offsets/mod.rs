@@ -27,6 +27,7 @@ use std::collections::BTreeMap;
 use ndarray::{Array1, Array2};
 use serde::Serialize;
 
+pub(crate) use profile::column_means;
 pub use profile::{PairProfile, profile};
 pub use solve::solve;
 

@@ -2,7 +2,7 @@
 //! Hungarian-matched embedding distance between camera `a` at frame `t` and camera `b` at
 //! frame `t + δ`, over every `t` both have; its minimum, refined below one frame step, and
 //! how clearly the minimum stands out.
-use ndarray::Array2;
+use ndarray::{Array2, ArrayView2};
 
 use super::{CameraSeries, OffsetConfig};
 use crate::distances::euclidean_distances_with_norms;
@@ -79,20 +79,10 @@ fn summarise(
     step: i64,
     cfg: &OffsetConfig,
 ) -> PairProfile {
-    let mut costs = Vec::with_capacity(shifts.len());
-    let mut counts = Vec::with_capacity(shifts.len());
-    for column in values.columns() {
-        let (n, sum) = column
-            .iter()
-            .filter(|v| v.is_finite())
-            .fold((0usize, 0f64), |(n, s), &v| (n + 1, s + f64::from(v)));
-        counts.push(n);
-        costs.push(if n >= cfg.min_frames.max(1) {
-            (sum / n as f64) as f32
-        } else {
-            f32::NAN
-        });
-    }
+    let (costs, counts): (Vec<f32>, Vec<usize>) = column_means(values.view(), cfg.min_frames)
+        .into_iter()
+        .map(|(mean, n)| (mean.unwrap_or(f32::NAN), n))
+        .unzip();
     let best = costs
         .iter()
         .enumerate()
@@ -116,6 +106,26 @@ fn summarise(
         frames,
         values,
     }
+}
+
+/// Per column (shift) of `values`, the mean of its finite entries (`None` when fewer than
+/// `min_frames`, at least one) and how many there are: a profile's cost at each shift.
+pub(crate) fn column_means(
+    values: ArrayView2<f32>,
+    min_frames: usize,
+) -> Vec<(Option<f32>, usize)> {
+    values
+        .columns()
+        .into_iter()
+        .map(|column| {
+            let (n, sum) = column
+                .iter()
+                .filter(|v| v.is_finite())
+                .fold((0usize, 0f64), |(n, s), &v| (n + 1, s + f64::from(v)));
+            let mean = (n >= min_frames.max(1)).then(|| (sum / n as f64) as f32);
+            (mean, n)
+        })
+        .collect()
 }
 
 /// The minimum's position below one step: the vertex of the parabola through the costs at

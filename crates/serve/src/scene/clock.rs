@@ -102,17 +102,19 @@ impl Window {
     }
 
     /// Adds a frame, dropping the oldest beyond the capacity; a frame not newer than the
-    /// window (a restarted stream) is left out, so the window stays ordered.
-    fn insert(&mut self, (epoch, frame_id, embeddings): Observed) {
-        if epoch != self.epoch {
+    /// window (a restarted stream) is left out, so the window stays ordered. True when the
+    /// frame came from a new model (the window was cleared for it).
+    fn insert(&mut self, (epoch, frame_id, embeddings): Observed) -> bool {
+        let new_model = epoch != self.epoch;
+        if new_model {
             self.clear();
             self.epoch = epoch;
         }
         let Ok(id) = i64::try_from(frame_id) else {
-            return;
+            return new_model;
         };
         if self.ids.back().is_some_and(|&last| id <= last) {
-            return;
+            return new_model;
         }
         for (c, series) in self.series.iter_mut().enumerate() {
             if let Some(view) = embeddings.view(c) {
@@ -128,6 +130,7 @@ impl Window {
         }
         self.as_of = frame_id;
         self.changed = true;
+        new_model
     }
 }
 
@@ -216,12 +219,11 @@ fn watch(
     let mut due = Instant::now() + period;
     loop {
         match rx.recv_timeout(due.saturating_duration_since(Instant::now())) {
+            // A new model: its contrasts are not comparable with the old one's.
             Ok(frame) => {
-                if frame.0 != window.epoch {
-                    // A new model: its contrasts are not comparable with the old one's.
+                if window.insert(frame) {
                     fit.reset();
                 }
-                window.insert(frame)
             }
             Err(RecvTimeoutError::Timeout) => {}
             Err(RecvTimeoutError::Disconnected) => return,
@@ -231,10 +233,9 @@ fn watch(
         }
         // Everything queued meanwhile first (frames wait here while an estimate runs).
         while let Ok(frame) = rx.try_recv() {
-            if frame.0 != window.epoch {
+            if window.insert(frame) {
                 fit.reset();
             }
-            window.insert(frame);
         }
         if !window.changed || window.ids.len() < enough {
             due = Instant::now() + period;
@@ -246,8 +247,8 @@ fn watch(
         let pairs = profiles(&window.series, step, &offsets);
         let counts: Vec<usize> = window.series.iter().map(CameraSeries::len).collect();
         let found = solve(window.series.len(), &pairs, &counts, step, None, &offsets);
-        let ids: Vec<i64> = window.ids.iter().copied().collect();
-        let in_doubt = fit.look(spec, &shared.metrics, &window.series, &ids, &pairs);
+        let ids = window.ids.make_contiguous();
+        let in_doubt = fit.look(spec, &shared.metrics, &window.series, ids, &pairs);
         shared.metrics.clock_estimate(&spec.name, t.elapsed());
         let mut report = describe(spec, &found, window.ids.len(), window.as_of);
         // A camera that moved is never reported (nor auto-aligned) as a clock offset.
