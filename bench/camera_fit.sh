@@ -12,7 +12,8 @@
 #
 # Usage: bash bench/camera_fit.sh
 # Env:   CROSSVIEW_BIN (target/release/crossview)  OUT (/var/tmp/cv-camera-fit)  PART (val)
-#        WILDTRACK (../shared/data/wildtrack)
+#        WILDTRACK (../shared/data/wildtrack)  FIT_ARGS (extra fit-check flags: '--recent 30')
+# Then:  python3 bench/camera_fit_replay.py OUT: each setting ±50 % on these looks.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 B=${CROSSVIEW_BIN:-target/release/crossview}
@@ -24,7 +25,8 @@ mkdir -p "$OUT"
 S="python3 bench/camera_fit_summary.py"
 
 "$B" import wildtrack-gt --dir "$WILDTRACK/annotations_positions" --split "$PART" --out "$OUT/gt.jsonl" 2>/dev/null
-check() { "$B" fit-check --model "$1" --data "$2" --json "${@:3}" 2>/dev/null > "${2%.jsonl}.json"; }
+# shellcheck disable=SC2086  # FIT_ARGS: extra fit-check flags, e.g. '--recent 30'
+check() { "$B" fit-check --model "$1" --data "$2" --json "${@:3}" ${FIT_ARGS:-} 2>/dev/null > "${2%.jsonl}.json"; }
 
 echo "== WILDTRACK $PART frames, models/wildtrack.onnx (one look per 20 frames = 10 s)"
 for cam in CVLab1 CVLab2 CVLab3 CVLab4 IDIAP1 IDIAP2 IDIAP3; do
