@@ -461,11 +461,19 @@ fn build_report(
     if !snap.errors_by_kind.is_empty() {
         failures.push(format!("client errors {:?}", snap.errors_by_kind));
     }
+    // Under overload the server sheds whole frames: refusals as `overloaded` are its
+    // backpressure, expected; a frame cut by it (some batches taken, some refused) is not.
     let expected_rejections: &[&str] = if args.soak {
-        &["late", "duplicate"]
+        &["late", "duplicate", "overloaded"]
     } else {
-        &[]
+        &["overloaded"]
     };
+    if snap.frames_cut_by_overload > 0 {
+        failures.push(format!(
+            "{} frames cut by the overload (batches both taken and refused)",
+            snap.frames_cut_by_overload
+        ));
+    }
     let unexpected: BTreeMap<_, _> = snap
         .rejected_by_kind
         .iter()
@@ -505,6 +513,9 @@ fn build_report(
         frames_accepted: snap.frames_accepted,
         results: snap.results,
         results_complete: snap.results_complete,
+        results_shed: snap.results_shed,
+        partial_all_accepted: snap.partial_all_accepted,
+        frames_cut_by_overload: snap.frames_cut_by_overload,
         results_per_s: snap.results as f64 / snap.active.as_secs_f64().max(1e-9),
         unexpected_results: snap.unexpected_results,
         duplicate_results: snap.duplicate_results,
@@ -544,6 +555,7 @@ fn compare(
     let late = snap.rejected_by_kind.get("late").copied().unwrap_or(0);
     let dup = snap.rejected_by_kind.get("duplicate").copied().unwrap_or(0);
     out.push(("crossview_late_batches_total", late));
+    out.push(("crossview_frames_shed_total", snap.results_shed));
     out.push(("crossview_duplicate_batches_total", dup));
     out.into_iter()
         // A counter the server never exposed cannot be compared (it may not count that);

@@ -10,7 +10,7 @@ use tokio::sync::{OwnedSemaphorePermit, mpsc, oneshot};
 use tokio_stream::wrappers::UnboundedReceiverStream;
 use tonic::transport::{Channel, Endpoint};
 
-use crate::tracker::{FrameKey, Tracker};
+use crate::tracker::{FrameKey, Outcome, Tracker};
 use crate::transport::{Outgoing, rejection_kind};
 use crossview_api::convert::batch_to_pb;
 use crossview_api::pb::{self as proto, association_client::AssociationClient};
@@ -141,7 +141,9 @@ pub async fn subscribe(
     while let Some(msg) = stream.next().await {
         match msg {
             Ok(r) if r.scene.is_empty() || r.scene == *scene => {
-                tracker.result((scene_idx, r.frame_id), r.complete, Instant::now())
+                let shed = r.status == proto::ResultStatus::Shed as i32;
+                let outcome = Outcome::of(r.complete, shed);
+                tracker.result((scene_idx, r.frame_id), outcome, Instant::now())
             }
             Ok(_) => tracker.error("result_wrong_scene"),
             Err(s) => {

@@ -9,7 +9,7 @@ use futures::StreamExt;
 use serde::Deserialize;
 use tokio::sync::{mpsc, oneshot};
 
-use crate::tracker::Tracker;
+use crate::tracker::{Outcome, Tracker};
 use crate::transport::{Outgoing, rejection_kind};
 
 /// One HTTP connection (HTTP/2 multiplexed unless `http1`). Each camera of each scene gets
@@ -141,6 +141,8 @@ struct ResultHead {
     frame_id: u64,
     #[serde(default)]
     complete: bool,
+    #[serde(default)]
+    status: Option<String>,
 }
 
 /// Follows `GET /v1/scenes/{scene}/events` (on its own HTTP/1.1 connection) and records
@@ -199,7 +201,8 @@ pub async fn subscribe(
             }
             match serde_json::from_str::<ResultHead>(&data) {
                 Ok(r) if r.scene.as_deref().is_none_or(|s| s == &*scene) => {
-                    tracker.result((scene_idx, r.frame_id), r.complete, now)
+                    let shed = r.status.as_deref() == Some("shed");
+                    tracker.result((scene_idx, r.frame_id), Outcome::of(r.complete, shed), now)
                 }
                 Ok(_) => tracker.error("result_wrong_scene"),
                 Err(_) => tracker.error("result_unparsable"),

@@ -21,7 +21,7 @@ use serde::Deserialize;
 use tokio::sync::oneshot;
 
 use crate::args::Args;
-use crate::tracker::{FrameKey, Tracker};
+use crate::tracker::{FrameKey, Outcome, Tracker};
 use crate::transport::Outgoing;
 
 /// A client's librdkafka settings: brokers, then `defaults`, then `--kafka-property` (which
@@ -201,7 +201,9 @@ pub async fn subscribe(
             Ok(m) => match decode_result(&m) {
                 Ok((scene, frame, complete)) => {
                     if let Some(i) = index.get(scene.as_str()) {
-                        tracker.result((*i, frame), complete, Instant::now());
+                        // Kafka mode never sheds (its partitions wait instead).
+                        let outcome = Outcome::of(complete, false);
+                        tracker.result((*i, frame), outcome, Instant::now());
                     }
                 }
                 Err(e) => {

@@ -84,6 +84,12 @@ pub struct Report {
     pub frames_accepted: u64,
     pub results: u64,
     pub results_complete: u64,
+    /// Results with status `shed` (frames the server shed whole under overload).
+    pub results_shed: u64,
+    /// Partial results of frames whose every batch the server had accepted.
+    pub partial_all_accepted: u64,
+    /// Frames with batches both accepted and refused as `overloaded`; must be 0.
+    pub frames_cut_by_overload: u64,
     pub results_per_s: f64,
     pub unexpected_results: u64,
     pub duplicate_results: u64,
@@ -132,9 +138,20 @@ impl Report {
         );
         let _ = writeln!(
             s,
-            "  results   {} ({} complete) for {} accepted frames, {:.1} results/s",
-            self.results, self.results_complete, self.frames_accepted, self.results_per_s
+            "  results   {} ({} complete, {} shed) for {} accepted frames, {:.1} results/s",
+            self.results,
+            self.results_complete,
+            self.results_shed,
+            self.frames_accepted,
+            self.results_per_s
         );
+        if self.partial_all_accepted > 0 || self.frames_cut_by_overload > 0 {
+            let _ = writeln!(
+                s,
+                "  cut       {} partial although every batch was accepted, {} cut by overload",
+                self.partial_all_accepted, self.frames_cut_by_overload
+            );
+        }
         for (name, l) in [
             ("complete", &self.latency_complete),
             ("partial", &self.latency_partial),

@@ -11,6 +11,28 @@ use tokio::sync::Notify;
 /// Identifies a frame of one scene: `(scene index, frame id)`.
 pub type FrameKey = (usize, u64);
 
+/// What a frame result says became of the frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Outcome {
+    /// Every camera's batch in it.
+    Complete,
+    /// Cameras missing.
+    Partial,
+    /// Shed whole under overload (status `shed`): not associated.
+    Shed,
+}
+
+impl Outcome {
+    /// From a result's `complete` flag and whether its status is `shed`.
+    pub fn of(complete: bool, shed: bool) -> Self {
+        match (shed, complete) {
+            (true, _) => Outcome::Shed,
+            (false, true) => Outcome::Complete,
+            (false, false) => Outcome::Partial,
+        }
+    }
+}
+
 #[derive(Debug, Default)]
 struct FrameState {
     /// When the most recent batch of this frame was handed to the transport.
@@ -19,6 +41,8 @@ struct FrameState {
     /// Batches the server answered (accepted or rejected) or that failed client-side.
     answered: u32,
     accepted: u32,
+    /// Batches refused as `overloaded` (the server shed the frame, or was over budget).
+    overloaded: u32,
     result: bool,
 }
 
@@ -46,6 +70,9 @@ struct Inner {
     errors_by_kind: BTreeMap<String, u64>,
     results: u64,
     results_complete: u64,
+    results_shed: u64,
+    /// Partial results of frames whose every batch was accepted (a camera was cut on the way).
+    partial_all_accepted: u64,
     unexpected_results: u64,
     duplicate_results: u64,
     missed_live: u64,
@@ -79,6 +106,8 @@ impl Tracker {
                 errors_by_kind: BTreeMap::new(),
                 results: 0,
                 results_complete: 0,
+                results_shed: 0,
+                partial_all_accepted: 0,
                 unexpected_results: 0,
                 duplicate_results: 0,
                 missed_live: 0,
@@ -139,6 +168,9 @@ impl Tracker {
         self.update(key, |g, st| {
             *g.rejected_by_kind.entry(kind.to_string()).or_default() += 1;
             st.answered += 1;
+            if kind == "overloaded" {
+                st.overloaded += 1;
+            }
         })
     }
 
@@ -160,13 +192,15 @@ impl Tracker {
     }
 
     /// A frame result arrived at `at`.
-    pub fn result(&self, key: FrameKey, complete: bool, at: Instant) {
+    pub fn result(&self, key: FrameKey, outcome: Outcome, at: Instant) {
         let known = {
             let mut g = self.lock();
             g.results += 1;
             g.last_result = Some(at);
-            if complete {
-                g.results_complete += 1;
+            match outcome {
+                Outcome::Complete => g.results_complete += 1,
+                Outcome::Shed => g.results_shed += 1,
+                Outcome::Partial => {}
             }
             if !g.frames.contains_key(&key) {
                 g.unexpected_results += 1;
@@ -182,12 +216,15 @@ impl Tracker {
                 return;
             }
             st.result = true;
+            if outcome == Outcome::Partial && st.accepted == st.sent && st.answered == st.sent {
+                g.partial_all_accepted += 1;
+            }
             let Some(sent) = st.last_send else { return };
             let micros = at.saturating_duration_since(sent).as_micros().max(1) as u64;
-            let h = if complete {
-                &mut g.latency_complete
-            } else {
-                &mut g.latency_partial
+            let h = match outcome {
+                Outcome::Complete => &mut g.latency_complete,
+                Outcome::Partial => &mut g.latency_partial,
+                Outcome::Shed => return,
             };
             h.saturating_record(micros);
         })
@@ -242,6 +279,13 @@ impl Tracker {
             errors_by_kind: g.errors_by_kind.clone(),
             results: g.results,
             results_complete: g.results_complete,
+            results_shed: g.results_shed,
+            partial_all_accepted: g.partial_all_accepted,
+            frames_cut_by_overload: g
+                .frames
+                .values()
+                .filter(|f| f.overloaded > 0 && f.accepted > 0)
+                .count() as u64,
             unexpected_results: g.unexpected_results,
             duplicate_results: g.duplicate_results,
             missed_live: g.missed_live,
@@ -266,6 +310,13 @@ pub struct Snapshot {
     pub errors_by_kind: BTreeMap<String, u64>,
     pub results: u64,
     pub results_complete: u64,
+    /// Results with status `shed`.
+    pub results_shed: u64,
+    /// Partial results of frames whose every batch was accepted.
+    pub partial_all_accepted: u64,
+    /// Frames with both accepted batches and batches refused as `overloaded` (the server
+    /// promises a frame is either taken whole or shed whole).
+    pub frames_cut_by_overload: u64,
     pub unexpected_results: u64,
     pub duplicate_results: u64,
     /// Results found only by re-reading the output (see [`Tracker::found_on_reread`]).
@@ -295,10 +346,10 @@ mod tests {
         assert_eq!(t.in_flight(), 4);
         t.rejected((0, 9), "late");
         assert_eq!(t.in_flight(), 3);
-        t.result((0, 0), true, t0 + Duration::from_millis(5));
-        t.result((0, 1), false, t0 + Duration::from_millis(300));
-        t.result((0, 1), false, t0 + Duration::from_millis(301));
-        t.result((1, 0), true, t0);
+        t.result((0, 0), Outcome::Complete, t0 + Duration::from_millis(5));
+        t.result((0, 1), Outcome::Partial, t0 + Duration::from_millis(300));
+        t.result((0, 1), Outcome::Partial, t0 + Duration::from_millis(301));
+        t.result((1, 0), Outcome::Complete, t0);
         let s = t.snapshot();
         assert_eq!((s.sent, s.accepted, s.results), (4, 3, 4));
         assert_eq!(s.lost, vec![(0, 2)]);

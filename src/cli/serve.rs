@@ -90,10 +90,17 @@ pub struct ServeArgs {
     /// it is refused (422 / INVALID_ARGUMENT).
     #[arg(long, env = "CROSSVIEW_MAX_FRAME_COST", default_value_t = Limits::default().max_frame_cost)]
     pub max_frame_cost: u64,
-    /// A frame not yet associated this long after its first batch is published with an error
-    /// instead.
-    #[arg(long, env = "CROSSVIEW_FRAME_DEADLINE", default_value = "2s", value_parser = parse_duration)]
-    pub frame_deadline: Duration,
+    /// The queue budget per scene: while a scene's oldest queued frame has waited longer, new
+    /// frames are shed whole (their batches refused with 429 / RESOURCE_EXHAUSTED and a
+    /// retry-after, the frame published with status `shed`); a frame that waited longer anyway
+    /// is shed from the queue. Bounds the latency of associated frames; Kafka mode pauses
+    /// instead of shedding.
+    #[arg(long, env = "CROSSVIEW_MAX_QUEUE_DELAY", alias = "frame-deadline", default_value = "500ms", value_parser = parse_duration)]
+    pub max_queue_delay: Duration,
+    /// Threads that run every scene's inference, below intake's CPU priority (0: one per
+    /// core).
+    #[arg(long, env = "CROSSVIEW_INFERENCE_THREADS", default_value_t = 0)]
+    pub inference_threads: usize,
     /// Frame-id window: batches more than this many ids from the scene's current frame ids
     /// are refused as out of range (until a majority of cameras move there: a restart).
     #[arg(long, env = "CROSSVIEW_FRAME_WINDOW", default_value_t = Limits::default().frame_window)]
@@ -405,7 +412,7 @@ impl ServeArgs {
                 queue_capacity: self.queue_capacity,
                 subscriber_buffer: self.subscriber_buffer,
                 max_frame_cost: self.max_frame_cost,
-                frame_deadline: self.frame_deadline,
+                max_queue_delay: self.max_queue_delay,
                 frame_window: self.frame_window,
                 max_rejected_lines: self.max_rejected_lines,
                 clock_watch: ClockWatchConfig {
@@ -441,6 +448,7 @@ impl ServeArgs {
                 queue_bytes: self.record_queue_bytes,
             }),
             kafka: self.kafka.to_config()?,
+            inference_threads: self.inference_threads,
         })
     }
 }

@@ -205,7 +205,7 @@ async fn a_subscriber_that_stops_reading_is_dropped_on_a_timer() {
         c.connections.subscriber_stall_timeout = Duration::from_millis(300);
         c.limits.queue_capacity = 1 << 16;
         c.limits.subscriber_buffer = 1 << 16;
-        c.limits.frame_deadline = Duration::from_secs(600);
+        c.limits.max_queue_delay = Duration::from_secs(600);
     })
     .await;
     // Subscribes on its own connection (a small HTTP/2 window, so it fills fast) and never

@@ -1,7 +1,7 @@
 //! Bounded cost per frame: the largest frame the limits allow is associated within its budget,
 //! a frame over the cost limit is refused before it costs anything, a backlog of expensive
-//! frames is published with errors once over the frame deadline instead of delaying every
-//! later frame, and shutdown ends within its grace (queued frames published with an error).
+//! frames is shed once over the queue budget instead of delaying every later frame, and
+//! shutdown ends within its grace (queued frames published with an error).
 
 use std::time::{Duration, Instant};
 
@@ -52,7 +52,7 @@ async fn the_largest_allowed_frame_answers_within_its_budget_and_a_larger_one_is
         frame_cost(&[n; 3]),
         took.as_nanos() as f64 / frame_cost(&[n; 3]) as f64
     );
-    assert!(took < Limits::default().frame_deadline * 10, "{took:?}");
+    assert!(took < Limits::default().max_queue_delay * 10, "{took:?}");
 
     // One box more per camera is over the cost limit: refused, nothing queued.
     let (status, v) = server
@@ -100,8 +100,8 @@ async fn push_backlog(server: &TestServer, frames: u64, n: usize) -> usize {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_backlog_of_expensive_frames_is_cut_at_the_frame_deadline() {
-    let server = start(|c| c.limits.frame_deadline = Duration::from_millis(100)).await;
+async fn a_backlog_of_expensive_frames_is_shed_past_the_queue_budget() {
+    let server = start(|c| c.limits.max_queue_delay = Duration::from_millis(100)).await;
     let mut results = server.subscribe("lab").await;
     let frames = 12;
     push_backlog(&server, frames, largest_uniform() * 3 / 4).await;
@@ -112,16 +112,20 @@ async fn a_backlog_of_expensive_frames_is_cut_at_the_frame_deadline() {
         if r.error.is_empty() {
             associated += 1;
         } else {
-            assert!(r.error.contains("--frame-deadline"), "{}", r.error);
+            assert!(r.error.contains("--max-queue-delay"), "{}", r.error);
+            assert_eq!(r.status, crossview_api::pb::ResultStatus::Shed as i32);
             assert!(r.identities.is_empty());
             cut += 1;
         }
     }
     assert!(associated >= 1, "the first frame is associated");
-    assert!(cut >= 1, "a 12-frame backlog outlives a 100 ms deadline");
+    assert!(cut >= 1, "a 12-frame backlog outlives a 100 ms budget");
     let m = server.metrics().await;
     assert_eq!(
-        metric(&m, "crossview_errors_total{kind=\"deadline_exceeded\"}"),
+        metric(
+            &m,
+            "crossview_frames_shed_total{scene=\"lab\",stage=\"queue\"}"
+        ),
         cut as f64
     );
     server.shutdown().await.unwrap();
@@ -130,7 +134,7 @@ async fn a_backlog_of_expensive_frames_is_cut_at_the_frame_deadline() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shutdown_respects_its_grace_with_expensive_frames_queued() {
     let server = start(|c| {
-        c.limits.frame_deadline = Duration::from_secs(600);
+        c.limits.max_queue_delay = Duration::from_secs(600);
         c.shutdown_grace = Duration::from_millis(200);
     })
     .await;

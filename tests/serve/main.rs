@@ -19,6 +19,7 @@ mod model_swap;
 mod ndjson_bounds;
 mod openapi;
 mod openapi_fuzz;
+mod overload;
 mod partial;
 mod record;
 mod record_disk;

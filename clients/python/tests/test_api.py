@@ -171,3 +171,18 @@ def test_errors_are_the_same_classes_for_both_transports() -> None:
     assert type(errors.error_from_http(409, {"error": {"kind": "no_model", "message": "m"}})) is cv.NoModel
     assert type(errors.error_from_http(429, None, "busy")) is cv.ResourceExhausted
     assert type(errors.error_from_http(503, None)) is cv.Unavailable
+
+
+def test_an_overloaded_scene_says_when_to_retry_on_both_transports() -> None:
+    body = {"error": {"kind": "overloaded", "message": "overloaded: scene 'x' is over its queue budget"}}
+    http = errors.error_from_http(429, body, "", "2")
+    assert type(http) is cv.Overloaded and isinstance(http, cv.ResourceExhausted)
+    assert http.retry_after == 2.0
+    from crossview_client._convert import ack_from_pb
+    from crossview_client._pb import crossview_pb2 as pb
+
+    ack = ack_from_pb(pb.BatchAck(scene="x", camera="a", frame_id=7, code=8, kind="overloaded",
+                                  message="overloaded: ...", retry_after_ms=250))
+    assert type(ack.error) is cv.Overloaded and ack.error.retry_after == 0.25
+    # A status without the server's kind metadata: the message's prefix tells.
+    assert type(errors.error_from_grpc("RESOURCE_EXHAUSTED", "overloaded: frame 7 was shed")) is cv.Overloaded

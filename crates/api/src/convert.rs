@@ -137,6 +137,7 @@ pub fn result_to_pb(r: &types::FrameResult) -> pb::FrameResult {
             types::ResultStatus::Associated => pb::ResultStatus::Associated,
             types::ResultStatus::NoModel => pb::ResultStatus::NoModel,
             types::ResultStatus::Failed => pb::ResultStatus::Failed,
+            types::ResultStatus::Shed => pb::ResultStatus::Shed,
         } as i32,
         model_version: r.model_version.clone().unwrap_or_default(),
     }

@@ -104,6 +104,10 @@ pub enum ResultStatus {
     NoModel,
     /// Association failed; `error` says why.
     Failed,
+    /// Shed whole under overload (`crossview serve --max-queue-delay`): never associated, no
+    /// identities; `error` says why. Its batches were either refused (429 /
+    /// `RESOURCE_EXHAUSTED`, shed at intake) or accepted and then waited past the budget.
+    Shed,
 }
 
 /// What a reload (`SIGHUP`, `POST /v1/admin/reload`, gRPC `Reload`) did to one scene's model

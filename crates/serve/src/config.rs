@@ -217,10 +217,11 @@ pub struct Limits {
     pub subscriber_buffer: usize,
     /// Most association cost units one frame may reach (see the cost model above).
     pub max_frame_cost: u64,
-    /// A frame whose association has not started this long after its first batch is
-    /// published with an error instead (keeps a backlog of expensive frames from delaying
-    /// every later one without bound).
-    pub frame_deadline: Duration,
+    /// The scene's queue budget: while its oldest queued job has waited longer, new frames
+    /// are shed at intake (their batches refused with a retry-after), and a frame that waited
+    /// longer anyway is shed from the queue; a unary request that waited longer is refused.
+    /// Bounds the latency of the frames that are associated (Kafka mode waits instead).
+    pub max_queue_delay: Duration,
     /// Frame-id window (see [`super::sync`]): batches further than this from the scene's
     /// current frame ids are refused as out of range.
     pub frame_window: u64,
@@ -232,6 +233,10 @@ pub struct Limits {
     pub clock_watch: ClockWatchConfig,
 }
 
+/// The default queue budget (`--max-queue-delay`; chosen by measurement, docs/serve.md
+/// "Sizing").
+pub const DEFAULT_MAX_QUEUE_DELAY: Duration = Duration::from_millis(500);
+
 impl Default for Limits {
     fn default() -> Self {
         Limits {
@@ -242,7 +247,7 @@ impl Default for Limits {
             queue_capacity: 256,
             subscriber_buffer: 1024,
             max_frame_cost: 200_000_000,
-            frame_deadline: Duration::from_secs(2),
+            max_queue_delay: DEFAULT_MAX_QUEUE_DELAY,
             frame_window: super::sync::DEFAULT_FRAME_WINDOW,
             max_rejected_lines: 100,
             clock_watch: ClockWatchConfig::default(),
@@ -336,6 +341,8 @@ pub struct ServeConfig {
     pub record: Option<super::record::RecordConfig>,
     /// Kafka mode ([`crate::transport::kafka`]) beside gRPC and HTTP, when set.
     pub kafka: Option<crate::transport::kafka::config::KafkaConfig>,
+    /// Threads of the inference pool every scene's work runs on (0: one per core).
+    pub inference_threads: usize,
 }
 
 impl std::fmt::Debug for ServeConfig {
@@ -358,6 +365,7 @@ impl std::fmt::Debug for ServeConfig {
             .field("tracker", &self.tracker)
             .field("record", &self.record)
             .field("kafka", &self.kafka)
+            .field("inference_threads", &self.inference_threads)
             .finish()
     }
 }
@@ -379,6 +387,7 @@ impl Default for ServeConfig {
             tracker: Some(TrackerConfig::default()),
             record: None,
             kafka: None,
+            inference_threads: 0,
         }
     }
 }

@@ -37,8 +37,16 @@ pub enum Error {
     /// A bounded queue or limit is full; the caller should back off and retry.
     #[error("resource exhausted: {0}")]
     ResourceExhausted(String),
-    /// A frame waited longer than its deadline for inference and was not associated
-    /// (`crossview serve --frame-deadline`); like [`Error::ResourceExhausted`], back off.
+    /// The scene is over its queue budget (`crossview serve --max-queue-delay`): the batch was
+    /// refused — its frame shed whole, or (a Kafka-fed scene) to be retried; retry after
+    /// `retry_after`, when the queue should be back within its budget.
+    #[error("overloaded: {message}")]
+    Overloaded {
+        message: String,
+        retry_after: std::time::Duration,
+    },
+    /// A unary request waited in the inference queue longer than the budget
+    /// (`crossview serve --max-queue-delay`) and was not associated; back off.
     #[error("deadline exceeded: {0}")]
     DeadlineExceeded(String),
     /// A result subscriber stopped reading and was dropped (`--subscriber-stall-timeout`).
@@ -82,6 +90,7 @@ impl Error {
             Error::LateBatch { .. } => "late",
             Error::FrameOutOfRange { .. } => "out_of_range",
             Error::ResourceExhausted(_) => "resource_exhausted",
+            Error::Overloaded { .. } => "overloaded",
             Error::DeadlineExceeded(_) => "deadline_exceeded",
             Error::SubscriberStalled(_) => "subscriber_stalled",
             Error::Unauthenticated(_) => "unauthenticated",

@@ -133,6 +133,12 @@ impl Server {
             )?),
             None => None,
         };
+        let threads = match config.inference_threads {
+            0 => std::thread::available_parallelism().map_or(1, usize::from),
+            n => n,
+        };
+        let pool = Arc::new(scene::Pool::start(threads)?);
+        tracing::info!(threads, "inference pool started");
         let mut started = Vec::new();
         for (k, spec) in specs.into_iter().enumerate() {
             let model = models.remove(&spec.name);
@@ -149,6 +155,7 @@ impl Server {
                 max_pending_frames: config.max_pending_frames,
                 limits: config.limits,
                 tracker: config.tracker.clone(),
+                pool: pool.clone(),
             };
             started.push(Scene::start(
                 spec,

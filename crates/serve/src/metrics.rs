@@ -181,6 +181,14 @@ impl Metrics {
         self.inc("crossview_frames_total", &[("scene", scene), ("state", c)]);
     }
 
+    /// One frame shed at intake left the synchronizer (`crossview_frames_total{state="shed"}`).
+    pub(crate) fn frame_shed(&self, scene: &str) {
+        self.inc(
+            "crossview_frames_total",
+            &[("scene", scene), ("state", "shed")],
+        );
+    }
+
     /// One frame published partial, by `cause`: `camera_missing` (the clock moved on past its
     /// timeout without it), `idle` (Kafka: its partition caught up and quiet that long),
     /// `frame_cap` (--max-pending-frames), `restart`, `shutdown`.
@@ -374,6 +382,20 @@ impl Metrics {
     /// Time one live clock estimate took (its sum over uptime is the watch's CPU share).
     pub(crate) fn clock_estimate(&self, scene: &str, d: Duration) {
         self.observe("crossview_clock_estimate_seconds", &[("scene", scene)], d);
+    }
+
+    /// One frame shed under overload (`stage`: `intake`, refused before any batch was taken,
+    /// or `queue`, taken whole but waited past `--max-queue-delay`).
+    pub(crate) fn shed(&self, scene: &str, stage: &'static str) {
+        self.inc(
+            "crossview_frames_shed_total",
+            &[("scene", scene), ("stage", stage)],
+        );
+    }
+
+    /// How long a job of the scene waited in the inference queue before it ran (or was shed).
+    pub(crate) fn queue_delay(&self, scene: &str, d: Duration) {
+        self.observe("crossview_queue_delay_seconds", &[("scene", scene)], d);
     }
 
     /// Time spent in the encoder and matcher for one frame.

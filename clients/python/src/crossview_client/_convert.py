@@ -7,7 +7,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from ._pb import crossview_pb2 as pb
-from .errors import GRPC_CODE_NAMES, ServerError, error_from_grpc
+from .errors import GRPC_CODE_NAMES, Overloaded, ServerError, error_from_grpc
 from .types import (
     Batch,
     Camera,
@@ -25,6 +25,7 @@ _STATUS_FROM_PB = {
     pb.RESULT_STATUS_ASSOCIATED: ResultStatus.ASSOCIATED,
     pb.RESULT_STATUS_NO_MODEL: ResultStatus.NO_MODEL,
     pb.RESULT_STATUS_FAILED: ResultStatus.FAILED,
+    pb.RESULT_STATUS_SHED: ResultStatus.SHED,
 }
 
 
@@ -53,6 +54,8 @@ def ack_from_pb(a: pb.BatchAck) -> PushAck:
     error = None
     if a.code != 0:
         error = error_from_grpc(GRPC_CODE_NAMES.get(a.code, "UNKNOWN"), a.message, a.kind)
+        if isinstance(error, Overloaded) and a.retry_after_ms:
+            error.retry_after = a.retry_after_ms / 1000.0
     return PushAck(scene=a.scene, camera=a.camera, frame_id=a.frame_id, error=error)
 
 

@@ -96,7 +96,7 @@ def _check(resp: httpx.Response) -> Any:
     except ValueError:
         body = None
     if resp.status_code >= 400:
-        raise error_from_http(resp.status_code, body, resp.text)
+        raise error_from_http(resp.status_code, body, resp.text, resp.headers.get("retry-after"))
     if body is None:
         raise ServerError(f"HTTP {resp.status_code}: expected a JSON answer", status=resp.status_code)
     return body

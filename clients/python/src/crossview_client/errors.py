@@ -22,6 +22,7 @@ __all__ = [
     "LateBatch",
     "NoModel",
     "ResourceExhausted",
+    "Overloaded",
     "SubscriberLagged",
     "Unauthenticated",
     "Forbidden",
@@ -119,6 +120,18 @@ class ResourceExhausted(CrossviewError):
     default_kind = "resource_exhausted"
 
 
+class Overloaded(ResourceExhausted):
+    """The scene is over its queue budget (``serve --max-queue-delay``): the batch's frame was
+    shed whole (429 / RESOURCE_EXHAUSTED, kind ``overloaded``). ``retry_after`` is how many
+    seconds the server asks to wait before sending more (``None`` when it gave none)."""
+
+    default_kind = "overloaded"
+
+    def __init__(self, message: str, *, retry_after: float | None = None, **kw: object) -> None:
+        super().__init__(message, **kw)  # type: ignore[arg-type]
+        self.retry_after: float | None = retry_after
+
+
 class SubscriberLagged(ResourceExhausted):
     """The server dropped this subscription: it fell too far behind the scene's results.
 
@@ -180,6 +193,7 @@ _BY_KIND: Final[dict[str, type[CrossviewError]]] = {
     "late": LateBatch,
     "no_model": NoModel,
     "resource_exhausted": ResourceExhausted,
+    "overloaded": Overloaded,
     "subscriber_stalled": ResourceExhausted,
     "subscriber_lagged": SubscriberLagged,
     "deadline_exceeded": Timeout,
@@ -256,8 +270,21 @@ def error_for_kind(
     return cls(message, kind=kind or None, field=field, status=status)
 
 
-def error_from_http(status: int, body: object, text: str = "") -> CrossviewError:
-    """Maps an HTTP error answer (status and decoded JSON body, if any) to an exception."""
+def error_from_http(
+    status: int, body: object, text: str = "", retry_after: str | None = None
+) -> CrossviewError:
+    """Maps an HTTP error answer (status, decoded JSON body if any, its ``Retry-After``
+    header) to an exception."""
+    e = _error_from_http(status, body, text)
+    if isinstance(e, Overloaded) and retry_after is not None:
+        try:
+            e.retry_after = float(retry_after)
+        except ValueError:
+            pass
+    return e
+
+
+def _error_from_http(status: int, body: object, text: str) -> CrossviewError:
     fallback = _BY_HTTP_STATUS.get(status, ServerError)
     if isinstance(body, dict):
         err = body.get("error")
@@ -286,6 +313,8 @@ def kind_from_grpc(code_name: str, message: str) -> str:
     if code_name == "FAILED_PRECONDITION":
         return "no_model" if "has no model" in m else "late"
     if code_name == "RESOURCE_EXHAUSTED":
+        if m.startswith("overloaded:"):
+            return "overloaded"
         if "subscriber stalled" in m:
             return "subscriber_stalled"
         if "deadline exceeded" in m:

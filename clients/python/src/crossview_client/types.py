@@ -167,6 +167,7 @@ class ResultStatus(str, enum.Enum):
     ASSOCIATED = "associated"
     NO_MODEL = "no_model"
     FAILED = "failed"
+    SHED = "shed"  # dropped whole under overload (serve --max-queue-delay); ``error`` says why
     UNSPECIFIED = "unspecified"
 
 

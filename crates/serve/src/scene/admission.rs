@@ -1,9 +1,10 @@
-//! Admission to a scene's inference queue: new work is shed with
-//! [`Error::ResourceExhausted`] once `queue_capacity` frames wait (or refused with
-//! [`Error::Unavailable`] after shutdown began), and frames the synchronizer releases are
+//! Admission to a scene's inference queue: a new frame is shed whole while the scene's queue
+//! delay is over its budget ([`Scene::shed_if_over_budget`]); new work is refused with
+//! [`Error::ResourceExhausted`] once `queue_capacity` frames wait (or with
+//! [`Error::Unavailable`] after shutdown began); and frames the synchronizer releases are
 //! queued for the worker in frame-id order.
 use std::sync::atomic::Ordering;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use super::worker::Job;
 use super::{Intake, Scene};
@@ -27,19 +28,72 @@ impl Scene {
         Ok(())
     }
 
-    /// Queues the frames the synchronizer released at wall time `now` for the worker (under
-    /// the intake lock, so in frame-id order) and updates the frame and pending gauges; a
-    /// partial frame that timed out is counted under `timed_out`.
+    /// Sheds frame `frame` — which camera `camera`'s batch `frame_id` would begin — when the
+    /// scene's queue delay (how long its oldest queued job has waited) is over
+    /// `--max-queue-delay`: the frame is shed whole (published with status `shed`, every batch
+    /// of it refused) and the batch refused with [`Error::Overloaded`], whose retry-after is
+    /// the excess. A Kafka-fed scene sheds nothing: the batch is refused, to be retried (its
+    /// partition waits). `now` is wall time, `clock` the scene's sync clock.
+    pub(super) fn shed_if_over_budget(
+        &self,
+        intake: &mut Intake,
+        camera: &str,
+        (frame_id, frame): (u64, u64),
+        now: Instant,
+        clock: Instant,
+    ) -> Result<()> {
+        let budget = self.limits.max_queue_delay;
+        let delay = self.lane.delay(now);
+        if delay <= budget {
+            return Ok(());
+        }
+        let what = if intake.timebase.is_stream() {
+            "retry it"
+        } else {
+            match intake.sync.shed(frame, now, clock) {
+                Ok(emitted) => self.enqueue(intake, emitted, PartialCause::Timeout),
+                // Late or out of range: that refusal says more.
+                Err(r) => return Err(self.rejected(intake, r, camera, frame_id)),
+            }
+            "its frame is shed"
+        };
+        Err(self.overloaded(
+            format!(
+                "scene '{}' is over its queue budget: its oldest queued frame has waited {:.3}s \
+                 (--max-queue-delay {budget:?}); the batch of camera '{camera}' for frame \
+                 {frame_id} is refused, {what}",
+                self.name(),
+                delay.as_secs_f64(),
+            ),
+            delay - budget,
+        ))
+    }
+
+    /// An [`Error::Overloaded`] saying `message`, retry after `excess` (at least 10 ms).
+    pub(super) fn overloaded(&self, message: String, excess: Duration) -> Error {
+        Error::Overloaded {
+            message,
+            retry_after: excess.max(Duration::from_millis(10)),
+        }
+    }
+
+    /// Queues the frames the synchronizer released for the worker (under the intake lock, so
+    /// in frame-id order) and updates the frame and pending gauges; a partial frame that timed
+    /// out is counted under `timed_out`.
     pub(super) fn enqueue(
         &self,
         intake: &mut Intake,
         emitted: Vec<Emitted>,
-        now: Instant,
         timed_out: PartialCause,
     ) {
+        let may_shed = !intake.timebase.is_stream();
         for e in emitted {
-            self.metrics.frame(self.name(), e.complete());
-            if !e.complete() {
+            if e.shed {
+                self.metrics.frame_shed(self.name());
+            } else if e.complete() {
+                self.metrics.frame(self.name(), true);
+            } else {
+                self.metrics.frame(self.name(), false);
                 tracing::debug!(
                     scene = self.name(),
                     frame = e.frame.frame_id,
@@ -50,20 +104,11 @@ impl Scene {
                 self.metrics
                     .partial(self.name(), partial_cause(e.reason, timed_out));
             }
-            // The frame deadline runs from when the frame began to wait by its own clock: a
-            // frame held while a stream's delivery was held is not charged for the hold.
-            let waited = e.waited.min(self.sync_timeout);
-            let deadline_from = now
-                .checked_sub(waited)
-                .map_or(e.first_seen, |t| t.max(e.first_seen));
             match &intake.jobs {
-                Some(tx) => {
+                Some(lane) => {
                     self.queued.fetch_add(1, Ordering::AcqRel);
-                    let job = Job::Stream {
-                        frame: e,
-                        deadline_from,
-                    };
-                    if tx.send(job).is_err() {
+                    let job = Job::Stream { frame: e, may_shed };
+                    if lane.push(job).is_err() {
                         self.queued.fetch_sub(1, Ordering::AcqRel);
                         tracing::error!(scene = self.name(), "encoder worker is gone");
                     }
@@ -94,5 +139,6 @@ fn partial_cause(reason: EmitReason, timed_out: PartialCause) -> &'static str {
         (EmitReason::Restart, _) => "restart",
         (EmitReason::Flush, _) => "shutdown",
         (EmitReason::Complete, _) => "complete",
+        (EmitReason::Shed, _) => "shed",
     }
 }

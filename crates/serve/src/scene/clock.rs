@@ -23,7 +23,6 @@
 //! are refused as late (counted, as any late batch) while it catches up.
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicI64, Ordering};
-use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, sync_channel};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -56,6 +55,12 @@ const WARN_FRAMES: f32 = 0.5;
 
 /// Poll period of the watch thread when the interval is shorter.
 const MIN_POLL: Duration = Duration::from_millis(50);
+
+/// How often the watch thread takes the frames queued for it. It polls a lock-free queue
+/// instead of blocking on a channel: the inference thread that hands it a frame must never
+/// wait on a lock the watch thread (at background priority, possibly without a core for a
+/// while) holds.
+const TAKE_EVERY: Duration = Duration::from_millis(50);
 
 /// Frames queued for the watch thread at most (it takes them in microseconds, except while
 /// estimating: ~0.6 s for 7 cameras; beyond, frames are left out of the window, never waited
@@ -137,8 +142,20 @@ impl Window {
 /// The worker's side of the watch: hands frames to the watch thread; dropping it stops the
 /// thread.
 pub(super) struct ClockWatch {
-    tx: SyncSender<Observed>,
+    feed: Arc<Feed>,
     epoch: u64,
+}
+
+/// The frames handed to the watch thread, and whether the worker still hands any.
+struct Feed {
+    frames: crossbeam_queue::ArrayQueue<Observed>,
+    closed: std::sync::atomic::AtomicBool,
+}
+
+impl Drop for ClockWatch {
+    fn drop(&mut self) {
+        self.feed.closed.store(true, Ordering::Release);
+    }
 }
 
 impl ClockWatch {
@@ -157,11 +174,16 @@ impl ClockWatch {
         if config.window == 0 {
             return None;
         }
-        let (tx, rx) = sync_channel(QUEUE);
+        let feed = Arc::new(Feed {
+            frames: crossbeam_queue::ArrayQueue::new(QUEUE),
+            closed: std::sync::atomic::AtomicBool::new(false),
+        });
+        let rx = feed.clone();
         let watched = spec.clone();
         let spawned = std::thread::Builder::new()
             .name(format!("clock-{}", spec.name))
             .spawn(move || {
+                super::run_at(super::Priority::Background);
                 let shared = Shared {
                     metrics,
                     state,
@@ -175,13 +197,13 @@ impl ClockWatch {
             tracing::error!(scene = %spec.name, error = %e, "clock watch not started");
             return None;
         }
-        Some(ClockWatch { tx, epoch: 0 })
+        Some(ClockWatch { feed, epoch: 0 })
     }
 
     /// Hands frame `frame_id`'s embeddings to the watch thread (moved: no copy, no lock, never
     /// blocks; a frame is left out while the thread's queue is full).
     pub(super) fn observe(&mut self, frame_id: u64, embeddings: FrameEmbeddings) {
-        let _ = self.tx.try_send((self.epoch, frame_id, embeddings));
+        let _ = self.feed.frames.push((self.epoch, frame_id, embeddings));
     }
 
     /// Forgets the window (a new model's embeddings are not comparable with the old one's).
@@ -197,6 +219,9 @@ struct Shared {
     offsets: Offsets,
 }
 
+/// Held while a watch computes its look (see [`watch`]).
+static LOOK: Mutex<()> = Mutex::new(());
+
 /// The watch thread: takes the worker's frames into its window and, once per interval, makes
 /// an estimate of the window if it changed and holds enough frames; ends when the worker
 /// drops its [`ClockWatch`].
@@ -205,7 +230,7 @@ fn watch(
     config: ClockWatchConfig,
     shared: &Shared,
     fit: &mut FitReporter,
-    rx: &Receiver<Observed>,
+    rx: &Feed,
 ) {
     let offsets = OffsetConfig {
         max_offset: config.max_offset,
@@ -218,30 +243,29 @@ fn watch(
     let mut proposed: Option<Vec<i64>> = None;
     let mut due = Instant::now() + period;
     loop {
-        match rx.recv_timeout(due.saturating_duration_since(Instant::now())) {
+        if rx.closed.load(Ordering::Acquire) {
+            return;
+        }
+        // Everything queued meanwhile (frames wait here while an estimate runs).
+        while let Some(frame) = rx.frames.pop() {
             // A new model: its contrasts are not comparable with the old one's.
-            Ok(frame) => {
-                if window.insert(frame) {
-                    fit.reset();
-                }
-            }
-            Err(RecvTimeoutError::Timeout) => {}
-            Err(RecvTimeoutError::Disconnected) => return,
-        }
-        if Instant::now() < due {
-            continue;
-        }
-        // Everything queued meanwhile first (frames wait here while an estimate runs).
-        while let Ok(frame) = rx.try_recv() {
             if window.insert(frame) {
                 fit.reset();
             }
+        }
+        let now = Instant::now();
+        if now < due {
+            std::thread::sleep(TAKE_EVERY.min(due - now));
+            continue;
         }
         if !window.changed || window.ids.len() < enough {
             due = Instant::now() + period;
             continue;
         }
         window.changed = false;
+        // One look at a time across the server: with many scenes the watch's share of the
+        // cores stays that of one background thread (the interval stretches instead).
+        let _turn = lock(&LOOK);
         let t = Instant::now();
         let step = frame_step(window.series.iter().flat_map(CameraSeries::frame_ids));
         let pairs = profiles(&window.series, step, &offsets);

@@ -4,15 +4,22 @@
 //! owns the broadcast.
 //!
 //! Data flow: `push` validates a batch and feeds the scene's [`Synchronizer`] under one lock;
-//! frames that leave go, still under that lock (so in frame-id order), into the worker's queue.
-//! The worker — a dedicated thread owning the encoder — associates each frame with one encoder
-//! call and publishes the result on a broadcast channel, in queue order. Admission is bounded:
-//! when `queue_capacity` frames are queued, new batches and unary requests are shed with
-//! [`Error::ResourceExhausted`] before anything is accepted; a batch (or unary request) that
-//! would make its frame cost more than `max_frame_cost` ([`crate::cost`]) is refused; and a
-//! frame whose association has not started `frame_deadline` after its first batch (or after
-//! the shutdown deadline) is published with an error instead of identities, so every accepted
-//! batch still appears in exactly one result.
+//! frames that leave go, still under that lock (so in frame-id order), into the scene's lane
+//! of the inference pool ([`pool`]), whose threads — below intake's CPU priority, so a batch
+//! is synchronized before any frame's inference — associate each frame with one encoder call
+//! and publish the result on a broadcast channel, in queue order.
+//!
+//! Overload costs whole frames, never cameras ([`admission`]): while the scene's queue delay
+//! (how long its oldest queued job has waited) is over `--max-queue-delay`, a *new* frame is
+//! shed at intake — its batches refused with [`Error::Overloaded`] (429 / `RESOURCE_EXHAUSTED`
+//! with a retry-after), the frame published with status `shed` — while frames already begun
+//! are still taken whole; a frame that waited in the queue past the budget anyway is shed
+//! there. A Kafka-fed scene never sheds: its batches are refused and retried (the partition
+//! waits). Admission is also bounded: when `queue_capacity` frames are queued, new batches and
+//! unary requests are refused with [`Error::ResourceExhausted`]; a batch (or unary request)
+//! that would make its frame cost more than `max_frame_cost` ([`crate::cost`]) is refused; a
+//! frame still queued after the shutdown deadline is published with an error. Every accepted
+//! batch appears in exactly one result.
 //!
 //! Boxes overlapping their image's edge are clipped to the image
 //! ([`Detection::clip_to_image`]) and counted (`crossview_clipped_boxes_total`); boxes
@@ -24,9 +31,9 @@ use std::time::{Duration, Instant};
 
 use tokio::sync::{Notify, broadcast, oneshot};
 
-use crossview_api::types::{ClockEstimate, FitEstimate, FrameResult, SceneDescription};
+use crossview_api::types::{ClockEstimate, FitEstimate, SceneDescription};
 use crossview_core::tracking::{Tracker, TrackerConfig};
-use crossview_core::{Detection, Encoder, Frame, SceneSpec};
+use crossview_core::{Detection, Encoder, SceneSpec};
 
 use crate::config::Limits;
 use crate::error::{Error, Result};
@@ -37,16 +44,22 @@ use crate::sync::{Rejection, Synchronizer};
 mod admission;
 mod clock;
 mod fit;
+mod pool;
+mod priority;
 mod published;
 mod timebase;
+mod unary;
 mod validate;
 mod worker;
 
 pub use crate::registry::SceneInfo;
+pub(crate) use pool::Pool;
+use priority::{Priority, run_at};
 pub use published::Published;
 pub use timebase::StreamClock;
 
 use admission::PartialCause;
+use pool::Lane;
 pub(crate) use worker::Model;
 use worker::{Job, Worker};
 
@@ -62,13 +75,16 @@ pub struct SceneOptions {
     pub limits: Limits,
     /// Track ids over time (`None`: off).
     pub tracker: Option<TrackerConfig>,
+    /// The inference pool the scene's work runs on (shared by the server's scenes).
+    pub(crate) pool: Arc<Pool>,
 }
 
 struct Intake {
     sync: Synchronizer,
     /// The clock sync timeouts run on: wall time, or the stream time of a Kafka partition.
     timebase: timebase::Timebase,
-    jobs: Option<std::sync::mpsc::Sender<Job>>,
+    /// The scene's lane of the inference pool (`None` once the scene closed).
+    jobs: Option<Arc<Lane>>,
 }
 
 /// A live scene (see the module docs).
@@ -93,7 +109,10 @@ pub struct Scene {
     published: Arc<AtomicU64>,
     /// Wakes the timer task when a new frame starts waiting.
     pub(crate) wake: Notify,
-    worker: Mutex<Option<std::thread::JoinHandle<()>>>,
+    /// The scene's lane of the inference pool (drained at close).
+    lane: Arc<Lane>,
+    /// The pool itself, kept running while a scene uses it (its threads end with the last).
+    _pool: Arc<Pool>,
     /// Where accepted batches are recorded (`--record`), if anywhere.
     recorder: Option<SceneRecorder>,
     /// The live clock watch's latest estimate ([`clock`]).
@@ -131,6 +150,7 @@ impl Scene {
             max_pending_frames: max_pending,
             limits,
             tracker,
+            pool,
         } = options;
         let n = spec.cameras.len();
         if n == 0 || n > limits.max_cameras {
@@ -150,7 +170,6 @@ impl Scene {
             None => None,
         };
         let serving = Arc::new(Mutex::new(model.as_ref().map(|m| m.info.clone())));
-        let (tx, rx) = std::sync::mpsc::channel::<Job>();
         let (results, _) = broadcast::channel(limits.subscriber_buffer.max(1));
         let queued = Arc::new(AtomicUsize::new(0));
         let close_by = Arc::new(Mutex::new(None));
@@ -170,7 +189,7 @@ impl Scene {
             results: results.clone(),
             queued: queued.clone(),
             metrics: metrics.clone(),
-            frame_deadline: limits.frame_deadline,
+            max_queue_delay: limits.max_queue_delay,
             close_by: close_by.clone(),
             published: published.clone(),
             tracker: tracker.map(Tracker::new),
@@ -186,16 +205,13 @@ impl Scene {
             fenced: fence,
             fenced_now: Vec::new(),
         };
-        let handle = std::thread::Builder::new()
-            .name(format!("encoder-{}", spec.name))
-            .spawn(move || worker.run(rx))
-            .map_err(|e| Error::internal_from("cannot start the encoder thread", e))?;
+        let lane = pool.lane(worker);
         Ok(Arc::new(Scene {
             intake: Mutex::new(Intake {
                 sync: Synchronizer::new(n, sync_timeout, max_pending)
                     .with_window(limits.frame_window),
                 timebase: timebase::Timebase::default(),
-                jobs: Some(tx),
+                jobs: Some(lane.clone()),
             }),
             spec,
             serving,
@@ -210,7 +226,8 @@ impl Scene {
             results: Mutex::new(Some(results)),
             published,
             wake: Notify::new(),
-            worker: Mutex::new(Some(handle)),
+            lane,
+            _pool: pool,
             recorder,
             clock,
             fit,
@@ -241,8 +258,8 @@ impl Scene {
                 .as_ref()
                 .ok_or_else(|| Error::Unavailable("server is shutting down".into()))?;
             let model = Box::new(Model { info, encoder });
-            jobs.send(Job::Swap { model, applied })
-                .map_err(|_| Error::Unavailable("encoder worker is gone".into()))?;
+            jobs.push(Job::Swap { model, applied })
+                .map_err(|_| Error::Unavailable("server is shutting down".into()))?;
         }
         done.await
             .map_err(|_| Error::Unavailable("encoder worker stopped".into()))
@@ -309,6 +326,9 @@ impl Scene {
         }
         let now = Instant::now();
         let clock = intake.timebase.at(now);
+        if intake.sync.pending_frame(frame).is_none() {
+            self.shed_if_over_budget(&mut intake, camera, (frame_id, frame), now, clock)?;
+        }
         let emitted = match intake.sync.push_at(cam, frame, detections, now, clock) {
             Ok(e) => e,
             Err(r) => return Err(self.rejected(&intake, r, camera, frame_id)),
@@ -324,7 +344,7 @@ impl Scene {
         if let (Some(r), Some(dets)) = (&self.recorder, recorded) {
             r.record(cam, offset, frame_id, dets);
         }
-        self.enqueue(&mut intake, emitted, now, PartialCause::Timeout);
+        self.enqueue(&mut intake, emitted, PartialCause::Timeout);
         drop(intake);
         // The earliest deadline may have changed.
         self.wake.notify_one();
@@ -377,6 +397,16 @@ impl Scene {
                 }
                 .into()
             }
+            Rejection::Shed => {
+                let budget = self.limits.max_queue_delay;
+                let excess = self.lane.delay(Instant::now()).saturating_sub(budget);
+                let message = format!(
+                    "frame {frame_id} of scene '{scene}' was shed under overload (queue delay \
+                     over --max-queue-delay {budget:?}): the batch of camera '{camera}' is \
+                     refused"
+                );
+                self.overloaded(message, excess)
+            }
             Rejection::OutOfRange => {
                 self.metrics.out_of_range(self.name());
                 let w = intake.sync.window();
@@ -410,7 +440,7 @@ impl Scene {
             } else {
                 PartialCause::Timeout
             };
-            self.enqueue(&mut intake, emitted, now, cause);
+            self.enqueue(&mut intake, emitted, cause);
         }
         let deadline = intake.sync.next_deadline()?;
         intake.timebase.wake_at(deadline)
@@ -440,73 +470,6 @@ impl Scene {
         n
     }
 
-    /// Associates one already synchronized frame (unary call); bypasses the synchronizer.
-    pub async fn associate(
-        &self,
-        frame_id: u64,
-        views: Vec<(String, Vec<Detection>)>,
-    ) -> Result<FrameResult> {
-        let started = Instant::now();
-        if lock(&self.serving).is_none() {
-            return Err(Error::NoModel(self.spec.name.clone()));
-        }
-        let n = self.spec.cameras.len();
-        let mut frame = Frame::new(frame_id, n);
-        let mut app_len: Option<usize> = None;
-        for (k, (camera, mut dets)) in views.into_iter().enumerate() {
-            let c = self.spec.camera_index(&camera)?;
-            if frame.views[c].is_some() {
-                return Err(Error::invalid(
-                    format!("views[{k}].camera"),
-                    format!("camera '{camera}' appears twice"),
-                ));
-            }
-            let field = format!("views[{k}].detections");
-            let len = self.validate(&field, c, &mut dets)?;
-            // One length over the whole request; a unary call never fixes the scene's.
-            if let (Some(a), Some(b)) = (app_len, len)
-                && a != b
-            {
-                return Err(Error::invalid(
-                    format!("{field}[0].appearance"),
-                    format!("expected {a} values, got {b}"),
-                ));
-            }
-            app_len = app_len.or(len);
-            self.check_appearance(&field, len)?;
-            frame.views[c] = Some(dets);
-        }
-        let counts: Vec<usize> = frame
-            .views
-            .iter()
-            .map(|v| v.as_ref().map_or(0, Vec::len))
-            .collect();
-        self.check_cost("views", frame_id, &counts)?;
-        let (tx, rx) = oneshot::channel();
-        {
-            let intake = lock(&self.intake);
-            self.admit(1)?;
-            let jobs = intake
-                .jobs
-                .as_ref()
-                .ok_or_else(|| Error::Unavailable("server is shutting down".into()))?;
-            self.queued.fetch_add(1, Ordering::AcqRel);
-            if jobs
-                .send(Job::Unary {
-                    frame,
-                    started,
-                    reply: tx,
-                })
-                .is_err()
-            {
-                self.queued.fetch_sub(1, Ordering::AcqRel);
-                return Err(Error::Unavailable("encoder worker is gone".into()));
-            }
-        }
-        rx.await
-            .map_err(|_| Error::Unavailable("encoder worker stopped".into()))?
-    }
-
     /// Results published so far.
     pub fn published(&self) -> u64 {
         self.published.load(Ordering::Acquire)
@@ -534,8 +497,8 @@ impl Scene {
 
     /// Graceful shutdown of this scene: refuses new work, flushes pending frames as partial
     /// results (a scene on a Kafka partition's stream time leaves them to the partition's next
-    /// owner instead), lets the worker finish its queue and publish it, then closes the
-    /// broadcast so subscriber streams end. Blocking (joins the worker thread).
+    /// owner instead), lets the pool finish the scene's queue and publish it, then closes the
+    /// broadcast so subscriber streams end. Blocking (waits for the scene's queue).
     ///
     /// With `deadline`, frames still queued after it are published with an error instead of
     /// being associated, so shutdown ends within about one frame's cost of it.
@@ -558,16 +521,12 @@ impl Scene {
             } else {
                 let emitted = intake.sync.flush();
                 let n = emitted.len();
-                self.enqueue(&mut intake, emitted, Instant::now(), PartialCause::Timeout);
+                self.enqueue(&mut intake, emitted, PartialCause::Timeout);
                 tracing::info!(scene = self.name(), flushed = n, "scene intake closed");
             }
             intake.jobs = None;
         }
-        if let Some(h) = lock(&self.worker).take()
-            && h.join().is_err()
-        {
-            tracing::error!(scene = self.name(), "encoder worker panicked");
-        }
+        self.lane.drain();
         lock(&self.results).take();
     }
 }

@@ -1,7 +1,9 @@
-//! A scene's inference worker: a dedicated thread that owns the encoder, associates each
-//! queued frame with one encoder call, and publishes the results in queue order. A frame that
-//! waited past the frame deadline (or the shutdown grace) is published with an error instead,
-//! so every accepted batch still appears in exactly one result.
+//! A scene's inference worker: the state that owns the scene's encoder, run one job at a time
+//! by the inference pool ([`super::pool`]); it associates each queued frame with one encoder
+//! call and publishes the results in queue order. A frame that waited in the queue longer than
+//! `--max-queue-delay` is shed (published with status `shed`, never associated), and one
+//! still queued after the shutdown grace is published with an error, so every accepted batch
+//! still appears in exactly one result.
 //!
 //! A model swap is one more job in the same queue: the frames queued before it are associated
 //! by the old model, those after it by the new one, none twice or lost. A scene declared by its
@@ -25,14 +27,16 @@ use crate::error::{Error, Result};
 use crate::metrics::Metrics;
 use crate::sync::Emitted;
 
+/// The reason a frame shed at intake is published with.
+const SHED_AT_INTAKE: &str = "shed at intake: the scene's queue delay was over its budget \
+     (--max-queue-delay) when the frame's first batch came; its batches were refused";
+
 /// Work for the worker.
 pub(super) enum Job {
-    /// A frame from the synchronizer: publish its result. Its frame deadline runs from
-    /// `deadline_from`.
-    Stream {
-        frame: Emitted,
-        deadline_from: Instant,
-    },
+    /// A frame from the synchronizer: publish its result. With `may_shed`, it is shed once it
+    /// waited in the queue longer than the scene's budget (a Kafka-fed scene never sheds: its
+    /// partition waits instead).
+    Stream { frame: Emitted, may_shed: bool },
     /// A unary request: answer it (its error, with its kind, goes back to the caller).
     Unary {
         frame: Frame,
@@ -63,7 +67,8 @@ pub(super) struct Worker {
     pub(super) results: broadcast::Sender<Arc<super::Published>>,
     pub(super) queued: Arc<AtomicUsize>,
     pub(super) metrics: Metrics,
-    pub(super) frame_deadline: Duration,
+    /// A frame that waited longer in the queue is shed (`--max-queue-delay`).
+    pub(super) max_queue_delay: Duration,
     pub(super) close_by: Arc<Mutex<Option<Instant>>>,
     pub(super) published: Arc<AtomicU64>,
     /// Track ids for the synchronized frames, in frame order (unary frames are not tracked;
@@ -79,60 +84,92 @@ pub(super) struct Worker {
 }
 
 impl Worker {
-    /// Serves jobs until the queue's sender is dropped (scene closed).
-    pub(super) fn run(mut self, rx: std::sync::mpsc::Receiver<Job>) {
-        while let Ok(job) = rx.recv() {
-            match job {
-                Job::Stream {
-                    frame: e,
-                    deadline_from,
-                } => {
-                    let (r, embeddings) = self.stream_result(&e.frame, e.first_seen, deadline_from);
-                    self.metrics
-                        .frame_latency(&self.spec.name, e.first_seen.elapsed());
-                    self.queued.fetch_sub(1, Ordering::AcqRel);
-                    // Count first, so a subscriber never sees more results than published.
-                    self.published.fetch_add(1, Ordering::AcqRel);
-                    let views = frame_boxes(&self.spec, &e.frame);
-                    // No subscriber is not an error.
-                    let _ = self
-                        .results
-                        .send(Arc::new(super::Published::new(FrameWithBoxes {
-                            result: r,
-                            views,
-                        })));
-                    // After publishing: the clock watch's copy is off the latency path. It
-                    // keeps the leading block only (an ensemble's first member): a window of
-                    // frames at the full width of an ensemble costs its width in memory.
-                    if let (Some(c), Some(embeddings), Some(m)) =
-                        (&mut self.clock, embeddings, &self.model)
-                    {
-                        let width = m.encoder.leading_width();
-                        c.observe(e.frame.frame_id, embeddings.leading(width));
+    /// Runs one job, queued at `queued_at`.
+    pub(super) fn handle(&mut self, job: Job, queued_at: Instant) {
+        if !matches!(job, Job::Swap { .. }) {
+            self.metrics
+                .queue_delay(&self.spec.name, queued_at.elapsed());
+        }
+        match job {
+            Job::Stream { frame: e, may_shed } => {
+                let waited = queued_at.elapsed();
+                let shed = if e.shed {
+                    Some(("intake", SHED_AT_INTAKE.to_string()))
+                } else if may_shed && waited > self.max_queue_delay {
+                    let why = format!(
+                        "shed: it waited {:.3}s in the inference queue, over the budget of \
+                         {:?} (--max-queue-delay)",
+                        waited.as_secs_f64(),
+                        self.max_queue_delay
+                    );
+                    Some(("queue", why))
+                } else {
+                    None
+                };
+                let (r, embeddings) = match shed {
+                    Some((stage, why)) => {
+                        self.metrics.shed(&self.spec.name, stage);
+                        (self.shed_result(&e.frame, e.first_seen, why), None)
                     }
-                }
-                Job::Unary {
-                    frame,
-                    started,
-                    reply,
-                } => {
-                    self.fenced_now.clear();
-                    // The caller counts the error (the service does, once).
-                    let r = self.associate_in_time(&frame, started).map(|(ids, _)| {
-                        let spec = &self.spec;
-                        let ids = ids.into_iter().map(|id| identity_out(spec, id, None));
-                        self.result(&frame, started, ids.collect())
-                    });
-                    self.queued.fetch_sub(1, Ordering::AcqRel);
-                    let _ = reply.send(r);
-                }
-                Job::Swap { model, applied } => {
-                    self.swap(*model);
-                    let _ = applied.send(());
-                }
+                    None => self.stream_result(&e.frame, e.first_seen),
+                };
+                self.publish(&e, r, embeddings);
+            }
+            Job::Unary {
+                frame,
+                started,
+                reply,
+            } => {
+                self.fenced_now.clear();
+                // The caller counts the error (the service does, once).
+                let r = self.associate_in_time(&frame, queued_at).map(|(ids, _)| {
+                    let spec = &self.spec;
+                    let ids = ids.into_iter().map(|id| identity_out(spec, id, None));
+                    self.result(&frame, started, ids.collect())
+                });
+                self.queued.fetch_sub(1, Ordering::AcqRel);
+                let _ = reply.send(r);
+            }
+            Job::Swap { model, applied } => {
+                self.swap(*model);
+                let _ = applied.send(());
             }
         }
-        tracing::debug!(scene = %self.spec.name, "encoder worker done");
+    }
+
+    /// Publishes a synchronized frame's result `r` (in queue order) and hands its embeddings
+    /// to the clock watch.
+    fn publish(&mut self, e: &Emitted, r: FrameResult, embeddings: Option<FrameEmbeddings>) {
+        self.metrics
+            .frame_latency(&self.spec.name, e.first_seen.elapsed());
+        self.queued.fetch_sub(1, Ordering::AcqRel);
+        // Count first, so a subscriber never sees more results than published.
+        self.published.fetch_add(1, Ordering::AcqRel);
+        let views = frame_boxes(&self.spec, &e.frame);
+        // No subscriber is not an error.
+        let _ = self
+            .results
+            .send(Arc::new(super::Published::new(FrameWithBoxes {
+                result: r,
+                views,
+            })));
+        // After publishing: the clock watch's copy is off the latency path. It keeps the
+        // leading block only (an ensemble's first member): a window of frames at the full
+        // width of an ensemble costs its width in memory.
+        if let (Some(c), Some(embeddings), Some(m)) = (&mut self.clock, embeddings, &self.model) {
+            let width = m.encoder.leading_width();
+            c.observe(e.frame.frame_id, embeddings.leading(width));
+        }
+    }
+
+    /// The published form of a shed frame: no identities, status `shed`, `why` in `error`.
+    fn shed_result(&mut self, frame: &Frame, first_seen: Instant, why: String) -> FrameResult {
+        self.fenced_now.clear();
+        let mut r = self.result(frame, first_seen, Vec::new());
+        r.status = ResultStatus::Shed;
+        r.error = Some(why);
+        r.error_kind = Some("shed".to_string());
+        r
     }
 
     /// Serves with `model` from now on. The tracks end (a new model's embedding space is not
@@ -157,7 +194,6 @@ impl Worker {
         &mut self,
         frame: &Frame,
         first_seen: Instant,
-        deadline_from: Instant,
     ) -> (FrameResult, Option<FrameEmbeddings>) {
         self.fenced_now.clear();
         if self.model.is_none() {
@@ -166,7 +202,7 @@ impl Worker {
             r.status = ResultStatus::NoModel;
             return (r, None);
         }
-        match self.associate_in_time(frame, deadline_from) {
+        match self.associate_in_time(frame, Instant::now()) {
             Ok((ids, embeddings)) => {
                 let tracks = match &mut self.tracker {
                     Some(tracker) => tracker
@@ -195,34 +231,35 @@ impl Worker {
         }
     }
 
-    /// The frame's identities, unless it waited too long (since `deadline_from`) to be
+    /// The frame's identities, unless it waited too long (since `queued_at`) to be
     /// associated at all.
     fn associate_in_time(
         &mut self,
         frame: &Frame,
-        deadline_from: Instant,
+        queued_at: Instant,
     ) -> Result<(Vec<Identity>, FrameEmbeddings)> {
-        self.check_deadline(deadline_from)?;
+        self.check_deadline(queued_at)?;
         self.associate(frame)
     }
 
-    /// Refuses a frame first seen at `first_seen` once past the frame deadline or the
-    /// shutdown grace.
-    fn check_deadline(&self, first_seen: Instant) -> Result<()> {
+    /// Refuses a job queued at `queued_at` once past the shutdown grace, or — a unary request
+    /// (a stream frame comes here only when it may not be shed, or in time) — once it waited
+    /// in the queue longer than the budget.
+    fn check_deadline(&self, queued_at: Instant) -> Result<()> {
         let now = Instant::now();
-        let waited = now.saturating_duration_since(first_seen);
+        let waited = now.saturating_duration_since(queued_at);
         if lock(&self.close_by).is_some_and(|t| now >= t) {
             Err(Error::Unavailable(
                 "frame not associated: the server is shutting down and its --shutdown-grace \
                  is over"
                     .into(),
             ))
-        } else if waited > self.frame_deadline {
+        } else if waited > self.max_queue_delay {
             Err(Error::DeadlineExceeded(format!(
-                "frame not associated: it waited {:.3}s for inference, over the frame deadline \
-                 of {:?} (--frame-deadline)",
+                "frame not associated: it waited {:.3}s in the inference queue, over the \
+                 budget of {:?} (--max-queue-delay)",
                 waited.as_secs_f64(),
-                self.frame_deadline
+                self.max_queue_delay
             )))
         } else {
             Ok(())

@@ -13,10 +13,12 @@ class ResultStatus(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     RESULT_STATUS_ASSOCIATED: _ClassVar[ResultStatus]
     RESULT_STATUS_NO_MODEL: _ClassVar[ResultStatus]
     RESULT_STATUS_FAILED: _ClassVar[ResultStatus]
+    RESULT_STATUS_SHED: _ClassVar[ResultStatus]
 RESULT_STATUS_UNSPECIFIED: ResultStatus
 RESULT_STATUS_ASSOCIATED: ResultStatus
 RESULT_STATUS_NO_MODEL: ResultStatus
 RESULT_STATUS_FAILED: ResultStatus
+RESULT_STATUS_SHED: ResultStatus
 
 class BoundingBox(_message.Message):
     __slots__ = ("x1", "y1", "x2", "y2")
@@ -53,20 +55,22 @@ class Batch(_message.Message):
     def __init__(self, scene: _Optional[str] = ..., camera: _Optional[str] = ..., frame_id: _Optional[int] = ..., detections: _Optional[_Iterable[_Union[Detection, _Mapping]]] = ...) -> None: ...
 
 class BatchAck(_message.Message):
-    __slots__ = ("scene", "camera", "frame_id", "code", "message", "kind")
+    __slots__ = ("scene", "camera", "frame_id", "code", "message", "kind", "retry_after_ms")
     SCENE_FIELD_NUMBER: _ClassVar[int]
     CAMERA_FIELD_NUMBER: _ClassVar[int]
     FRAME_ID_FIELD_NUMBER: _ClassVar[int]
     CODE_FIELD_NUMBER: _ClassVar[int]
     MESSAGE_FIELD_NUMBER: _ClassVar[int]
     KIND_FIELD_NUMBER: _ClassVar[int]
+    RETRY_AFTER_MS_FIELD_NUMBER: _ClassVar[int]
     scene: str
     camera: str
     frame_id: int
     code: int
     message: str
     kind: str
-    def __init__(self, scene: _Optional[str] = ..., camera: _Optional[str] = ..., frame_id: _Optional[int] = ..., code: _Optional[int] = ..., message: _Optional[str] = ..., kind: _Optional[str] = ...) -> None: ...
+    retry_after_ms: int
+    def __init__(self, scene: _Optional[str] = ..., camera: _Optional[str] = ..., frame_id: _Optional[int] = ..., code: _Optional[int] = ..., message: _Optional[str] = ..., kind: _Optional[str] = ..., retry_after_ms: _Optional[int] = ...) -> None: ...
 
 class CameraView(_message.Message):
     __slots__ = ("camera", "detections")

@@ -48,9 +48,10 @@ pub(crate) fn status(e: Error) -> Status {
         },
         Error::LateBatch { .. } | Error::NoModel(_) => Code::FailedPrecondition,
         Error::FrameOutOfRange { .. } => Code::OutOfRange,
-        Error::ResourceExhausted(_) | Error::DeadlineExceeded(_) | Error::SubscriberStalled(_) => {
-            Code::ResourceExhausted
-        }
+        Error::ResourceExhausted(_)
+        | Error::Overloaded { .. }
+        | Error::DeadlineExceeded(_)
+        | Error::SubscriberStalled(_) => Code::ResourceExhausted,
         Error::Unauthenticated(_) => Code::Unauthenticated,
         Error::Unavailable(_) => Code::Unavailable,
     };
@@ -64,6 +65,9 @@ pub(crate) fn status(e: Error) -> Status {
     {
         meta.insert(FIELD_KEY, v);
     }
+    if let Some(ms) = retry_after_ms(&e) {
+        meta.insert(RETRY_AFTER_KEY, ms.into());
+    }
     Status::with_metadata(code, crate::echo::truncate_echo(&e.report()), meta)
 }
 
@@ -72,6 +76,19 @@ pub(crate) fn status(e: Error) -> Status {
 pub(crate) const KIND_KEY: &str = "crossview-error-kind";
 /// Status metadata naming the offending field of an `invalid_argument` (when ASCII).
 pub(crate) const FIELD_KEY: &str = "crossview-error-field";
+/// Status metadata of an `overloaded` refusal: milliseconds to wait before retrying (as the
+/// HTTP `Retry-After`, and a rejected ack's `retry_after_ms`).
+pub(crate) const RETRY_AFTER_KEY: &str = "crossview-retry-after-ms";
+
+/// An `overloaded` refusal's retry-after in milliseconds (at least 1).
+fn retry_after_ms(e: &Error) -> Option<u64> {
+    match e {
+        Error::Overloaded { retry_after, .. } => {
+            Some((retry_after.as_millis().min(u128::from(u64::MAX)) as u64).max(1))
+        }
+        _ => None,
+    }
+}
 
 /// Pushes one protobuf batch — or a message that did not decode as one (see [`super::push`])
 /// — and turns the outcome into its acknowledgement. An undecodable message's ack has no
@@ -85,21 +102,14 @@ fn push_one(svc: &Service, b: crate::error::Result<pb::Batch>) -> pb::BatchAck {
         .and_then(|b| Ok(batch_from_pb(b)?))
         .inspect_err(|e| svc.metrics().error(e))
         .and_then(|(scene, batch)| svc.push(&scene, batch));
-    let (code, message, kind) = match outcome {
-        Ok(_) => (0, String::new(), String::new()),
-        Err(e) => {
-            let kind = e.kind().to_string();
-            let status = status(e);
-            (status.code() as i32, status.message().to_string(), kind)
-        }
-    };
-    pb::BatchAck {
-        scene,
-        camera,
-        frame_id,
-        code,
-        message,
-        kind,
+    match outcome {
+        Ok(_) => pb::BatchAck {
+            scene,
+            camera,
+            frame_id,
+            ..Default::default()
+        },
+        Err(e) => refusal(scene, camera, frame_id, e),
     }
 }
 
@@ -249,7 +259,7 @@ impl GrpcService {
                                 .map(|s| {
                                     let d = s.describe();
                                     std::time::Duration::from_millis(d.sync_timeout_ms)
-                                        + s.limits().frame_deadline
+                                        + s.limits().max_queue_delay
                                 })
                                 .unwrap_or_default();
                             tokio::spawn(forward_results(
@@ -386,14 +396,21 @@ fn echo(s: &str) -> String {
 }
 
 fn reject(b: &pb::Batch, e: Error) -> pb::BatchAck {
+    refusal(echo(&b.scene), echo(&b.camera), b.frame_id, e)
+}
+
+/// The ack of a refused batch: `e`'s code, message, kind and retry-after.
+fn refusal(scene: String, camera: String, frame_id: u64, e: Error) -> pb::BatchAck {
     let kind = e.kind().to_string();
+    let retry_after_ms = retry_after_ms(&e).unwrap_or(0);
     let status = status(e);
     pb::BatchAck {
-        scene: echo(&b.scene),
-        camera: echo(&b.camera),
-        frame_id: b.frame_id,
+        scene,
+        camera,
+        frame_id,
         code: status.code() as i32,
         message: status.message().to_string(),
         kind,
+        retry_after_ms,
     }
 }

@@ -39,9 +39,10 @@ pub(crate) fn status_of(e: &Error) -> StatusCode {
         },
         Error::FrameOutOfRange { .. } => StatusCode::UNPROCESSABLE_ENTITY,
         Error::LateBatch { .. } | Error::NoModel(_) => StatusCode::CONFLICT,
-        Error::ResourceExhausted(_) | Error::DeadlineExceeded(_) | Error::SubscriberStalled(_) => {
-            StatusCode::TOO_MANY_REQUESTS
-        }
+        Error::ResourceExhausted(_)
+        | Error::Overloaded { .. }
+        | Error::DeadlineExceeded(_)
+        | Error::SubscriberStalled(_) => StatusCode::TOO_MANY_REQUESTS,
         Error::Unauthenticated(_) => StatusCode::UNAUTHORIZED,
         Error::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
     }
@@ -83,6 +84,14 @@ impl IntoResponse for HttpError {
             resp.headers_mut().insert(
                 http::header::WWW_AUTHENTICATE,
                 http::HeaderValue::from_static("Bearer"),
+            );
+        }
+        if let Error::Overloaded { retry_after, .. } = &e {
+            // Whole seconds (RFC 9110), rounded up: a client never comes back too early.
+            let secs = retry_after.as_secs() + u64::from(retry_after.subsec_nanos() > 0);
+            resp.headers_mut().insert(
+                http::header::RETRY_AFTER,
+                http::HeaderValue::from(secs.max(1)),
             );
         }
         resp

@@ -196,7 +196,11 @@ fn is_json_lines(media: Option<&str>) -> bool {
         (status = 415, description = "Body neither JSON nor JSON Lines", body = ErrorBody),
         (status = 422, description = "Invalid batch, or a frame id outside the scene's window; \
             `field` names the culprit", body = ErrorBody),
-        (status = 429, description = "The scene's inference queue is full; back off and retry",
+        (status = 429, description = "Overload: kind `overloaded` — the scene is over its queue \
+            budget (`--max-queue-delay`) and this batch's frame is shed whole (published with \
+            status `shed`); wait the `Retry-After` seconds before sending more. Kind \
+            `resource_exhausted`: the scene's queue is full (`--queue-capacity`)",
+            headers(("Retry-After" = u64, description = "Seconds to wait (kind `overloaded`)")),
             body = ErrorBody),
     ))]
 async fn push_batch(

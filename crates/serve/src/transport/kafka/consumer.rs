@@ -138,8 +138,10 @@ impl Kafka {
                     self.metrics().kafka_record("accepted");
                     return Handled::Next;
                 }
-                Err(Error::ResourceExhausted(_)) if self.service.accepting() => {
-                    // Overload: wait (backpressure on the partition), never drop.
+                Err(Error::ResourceExhausted(_) | Error::Overloaded { .. })
+                    if self.service.accepting() =>
+                {
+                    // Overload: wait (backpressure on the partition), never drop or shed.
                     tokio::time::sleep(Duration::from_millis(10)).await;
                 }
                 Err(Error::Unavailable(_)) => return Handled::Stop,

@@ -1,0 +1,82 @@
+//! Unary association: one already synchronized frame, answered to its caller; it bypasses
+//! the synchronizer but takes the same queue (and budget) as the scene's stream frames.
+use std::sync::atomic::Ordering;
+use std::time::Instant;
+
+use tokio::sync::oneshot;
+
+use crossview_api::types::FrameResult;
+use crossview_core::{Detection, Frame};
+
+use super::worker::Job;
+use super::{Scene, lock};
+use crate::error::{Error, Result};
+
+impl Scene {
+    /// Associates one already synchronized frame (unary call); bypasses the synchronizer.
+    pub async fn associate(
+        &self,
+        frame_id: u64,
+        views: Vec<(String, Vec<Detection>)>,
+    ) -> Result<FrameResult> {
+        let started = Instant::now();
+        if lock(&self.serving).is_none() {
+            return Err(Error::NoModel(self.spec.name.clone()));
+        }
+        let n = self.spec.cameras.len();
+        let mut frame = Frame::new(frame_id, n);
+        let mut app_len: Option<usize> = None;
+        for (k, (camera, mut dets)) in views.into_iter().enumerate() {
+            let c = self.spec.camera_index(&camera)?;
+            if frame.views[c].is_some() {
+                return Err(Error::invalid(
+                    format!("views[{k}].camera"),
+                    format!("camera '{camera}' appears twice"),
+                ));
+            }
+            let field = format!("views[{k}].detections");
+            let len = self.validate(&field, c, &mut dets)?;
+            // One length over the whole request; a unary call never fixes the scene's.
+            if let (Some(a), Some(b)) = (app_len, len)
+                && a != b
+            {
+                return Err(Error::invalid(
+                    format!("{field}[0].appearance"),
+                    format!("expected {a} values, got {b}"),
+                ));
+            }
+            app_len = app_len.or(len);
+            self.check_appearance(&field, len)?;
+            frame.views[c] = Some(dets);
+        }
+        let counts: Vec<usize> = frame
+            .views
+            .iter()
+            .map(|v| v.as_ref().map_or(0, Vec::len))
+            .collect();
+        self.check_cost("views", frame_id, &counts)?;
+        let (tx, rx) = oneshot::channel();
+        {
+            let intake = lock(&self.intake);
+            self.admit(1)?;
+            let jobs = intake
+                .jobs
+                .as_ref()
+                .ok_or_else(|| Error::Unavailable("server is shutting down".into()))?;
+            self.queued.fetch_add(1, Ordering::AcqRel);
+            if jobs
+                .push(Job::Unary {
+                    frame,
+                    started,
+                    reply: tx,
+                })
+                .is_err()
+            {
+                self.queued.fetch_sub(1, Ordering::AcqRel);
+                return Err(Error::Unavailable("server is shutting down".into()));
+            }
+        }
+        rx.await
+            .map_err(|_| Error::Unavailable("encoder worker stopped".into()))?
+    }
+}
