@@ -3,7 +3,9 @@
 # and as fast as it goes, and 64 scenes x 10 frames/s, gRPC, width-64 random encoder, a fresh
 # server per run (peak RSS sampled by the load tester). Bounded: every run has --duration.
 # Usage: bash bench/service_throughput.sh     Env: OUT (/var/tmp/cv-svc), PORT (18391),
-#   MODEL (a WILDTRACK model file to serve instead of the random encoder)
+#   MODEL (a WILDTRACK model file to serve instead of the random encoder), REC (with MODEL: a
+#   WILDTRACK recording to replay instead of the simulated one, e.g. the validation frames from
+#   `crossview import wildtrack-gt --split val`: real density)
 set -u
 cd "$(dirname "$0")/.." || exit 1
 export ORT_DYLIB_PATH=$PWD/.cache/onnxruntime/libonnxruntime.so.1.31.1
@@ -13,6 +15,7 @@ if [[ -n ${MODEL:-} ]]; then
   # A WILDTRACK model file (MODEL=models/wildtrack.onnx): the same simulated recording with its
   # cameras renamed to the model's (bench/wildtrack_load.sh), served with that file.
   CROSSVIEW_BIN=$B; source bench/wildtrack_load.sh; cp "$MODEL" $OUT/model.onnx
+  if [[ -n ${REC:-} ]]; then cp "$REC" $OUT/rec.jsonl; fi
 else
   $B simulate --preset wildtrack --frames 600 --seed 11 --out $OUT/rec.jsonl 2>/dev/null
   $B model init --scene-from $OUT/rec.jsonl --out $OUT/model.onnx --width 64 >/dev/null 2>&1

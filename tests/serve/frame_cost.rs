@@ -10,26 +10,6 @@ use crossview_serve::cost::frame_cost;
 use crossview_testing::*;
 use futures::StreamExt;
 
-/// The most boxes per camera (all three cameras alike) the default limits admit.
-fn largest_uniform() -> usize {
-    let l = Limits::default();
-    (1..=l.max_detections)
-        .take_while(|&n| frame_cost(&[n; 3]) <= l.max_frame_cost)
-        .last()
-        .unwrap()
-}
-
-fn associate_body(n: usize) -> serde_json::Value {
-    let views: Vec<_> = (0..3)
-        .map(|c| {
-            let mut b = batch_json(c, 1, n);
-            b.as_object_mut().unwrap().remove("frame_id");
-            b
-        })
-        .collect();
-    serde_json::json!({ "frame_id": 1, "views": views })
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_largest_allowed_frame_answers_within_its_budget_and_a_larger_one_is_refused() {
     let server = start(|_| {}).await;
@@ -83,10 +63,11 @@ async fn the_largest_allowed_frame_answers_within_its_budget_and_a_larger_one_is
 /// Pushes `frames` frames of 3 × `n` boxes and one small frame after them.
 async fn push_backlog(server: &TestServer, frames: u64, n: usize) -> usize {
     let mut client = server.grpc().await;
-    let mut batches: Vec<_> = (1..=frames)
-        .flat_map(|f| (0..3).map(move |c| batch(c, f, n)))
+    // Every frame begun before any is complete: none meets a queue at intake.
+    let size = move |f| if f > frames { 2 } else { n };
+    let batches: Vec<_> = (0..3)
+        .flat_map(|c| (1..=frames + 1).map(move |f| batch(c, f, size(f))))
         .collect();
-    batches.extend((0..3).map(|c| batch(c, frames + 1, 2)));
     let total = batches.len();
     let mut acks = client
         .push(futures::stream::iter(batches))

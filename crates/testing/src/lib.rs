@@ -333,6 +333,28 @@ pub fn batch_json(camera: usize, frame: u64, n: usize) -> serde_json::Value {
     serde_json::json!({ "camera": CAMERAS[camera], "frame_id": frame, "detections": dets })
 }
 
+/// The most boxes per camera (all three cameras alike) the default limits admit: the most
+/// expensive frame a client can send (`--max-frame-cost`).
+pub fn largest_uniform() -> usize {
+    let l = crossview_serve::Limits::default();
+    (1..=l.max_detections)
+        .take_while(|&n| crossview_serve::cost::frame_cost(&[n; 3]) <= l.max_frame_cost)
+        .last()
+        .expect("the default limits admit a frame of one box per camera")
+}
+
+/// A unary `associate` body: frame 1 with 3 × `n` boxes.
+pub fn associate_body(n: usize) -> serde_json::Value {
+    let views: Vec<_> = (0..3)
+        .map(|c| {
+            let mut b = batch_json(c, 1, n);
+            b.as_object_mut().unwrap().remove("frame_id");
+            b
+        })
+        .collect();
+    serde_json::json!({ "frame_id": 1, "views": views })
+}
+
 /// Checks a result's identities: members point at existing boxes, at most one per camera per
 /// identity, and no box in two identities.
 pub fn check_identities(r: &pb::FrameResult, boxes_per_camera: &[usize]) {
