@@ -47,7 +47,7 @@ def rss(r):
 def table(out, scenes, cap, factors):
     print("| run | frames/s per scene | associated/s | shed (client / server) | refused late "
           "| partial though complete when sent | cut by overload | complete p50 / p99 / max ms "
-          "| after: p99 ms (3 s at 0.8×) | peak RSS | verdict |")
+          "| after: p99 ms (0.8×, frames sent 2–5 s after) | peak RSS | verdict |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for f in factors:
         for p in sorted(glob.glob(f"{out}/x{f}-[0-9].json")):

@@ -105,6 +105,12 @@ pub struct Args {
     #[arg(long, value_parser = parse_duration, default_value = "5s")]
     pub drain_timeout: Duration,
 
+    /// Latency percentiles count only the frames sent this long after the run's first send
+    /// (e.g. 2s: how the server answers once a run's first seconds are over, such as right
+    /// after an overload). Everything else is counted as always.
+    #[arg(long, value_parser = parse_duration, default_value = "0s")]
+    pub latency_after: Duration,
+
     /// HTTP request timeout.
     #[arg(long, value_parser = parse_duration, default_value = "10s")]
     pub request_timeout: Duration,

@@ -128,7 +128,7 @@ pub async fn run(args: &Args) -> anyhow::Result<Report> {
         }
     }
     let ncam = workload.scene.cameras.len();
-    let tracker = Arc::new(Tracker::new());
+    let tracker = Arc::new(Tracker::new().latency_after(args.latency_after));
     let metrics_before = server_metrics(args).await;
     let rss = args
         .server_pid

@@ -56,6 +56,8 @@ impl FrameState {
 /// Counts and latencies of one run; cheap to share behind an `Arc`.
 pub struct Tracker {
     inner: Mutex<Inner>,
+    /// Latencies count only for frames sent this long after the first send.
+    latency_after: std::time::Duration,
     /// Woken whenever a frame stops being in flight.
     progress: Notify,
 }
@@ -117,7 +119,15 @@ impl Tracker {
                 last_result: None,
             }),
             progress: Notify::new(),
+            latency_after: std::time::Duration::ZERO,
         }
+    }
+
+    /// Counts latencies only of frames whose last batch was sent `d` or more after the run's
+    /// first send.
+    pub fn latency_after(mut self, d: std::time::Duration) -> Self {
+        self.latency_after = d;
+        self
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
@@ -220,6 +230,11 @@ impl Tracker {
                 g.partial_all_accepted += 1;
             }
             let Some(sent) = st.last_send else { return };
+            if g.first_send
+                .is_some_and(|t0| sent.saturating_duration_since(t0) < self.latency_after)
+            {
+                return;
+            }
             let micros = at.saturating_duration_since(sent).as_micros().max(1) as u64;
             let h = match outcome {
                 Outcome::Complete => &mut g.latency_complete,
@@ -333,6 +348,34 @@ pub struct Snapshot {
 mod tests {
     use super::*;
     use std::time::Duration;
+
+    #[test]
+    fn shed_and_overload_are_told_apart_and_early_latencies_can_be_left_out() {
+        let t = Tracker::new().latency_after(Duration::from_secs(2));
+        let t0 = Instant::now();
+        // Frame 0 early, frame 1 after 2 s: only frame 1's latency counts.
+        for (f, at) in [(0, t0), (1, t0 + Duration::from_secs(3))] {
+            for _ in 0..3 {
+                t.sent((0, f), at);
+                t.accepted((0, f));
+            }
+            t.result((0, f), Outcome::Complete, at + Duration::from_millis(7));
+        }
+        // Frame 2 shed whole; frame 3 cut: one batch taken, one refused as overloaded.
+        t.sent((0, 2), t0);
+        t.rejected((0, 2), "overloaded");
+        t.result((0, 2), Outcome::Shed, t0);
+        t.sent((0, 3), t0);
+        t.sent((0, 3), t0);
+        t.accepted((0, 3));
+        t.rejected((0, 3), "overloaded");
+        t.result((0, 3), Outcome::Partial, t0);
+        let s = t.snapshot();
+        assert_eq!(s.latency_complete.len(), 1);
+        assert_eq!((s.results, s.results_complete, s.results_shed), (4, 2, 1));
+        assert_eq!(s.frames_cut_by_overload, 1);
+        assert_eq!(s.partial_all_accepted, 0);
+    }
 
     #[test]
     fn matches_results_to_sends_and_finds_lost_frames() {
