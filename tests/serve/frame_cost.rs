@@ -5,7 +5,6 @@
 
 use std::time::{Duration, Instant};
 
-use crossview_serve::Limits;
 use crossview_serve::cost::frame_cost;
 use crossview_testing::*;
 use futures::StreamExt;
@@ -32,7 +31,7 @@ async fn the_largest_allowed_frame_answers_within_its_budget_and_a_larger_one_is
         frame_cost(&[n; 3]),
         took.as_nanos() as f64 / frame_cost(&[n; 3]) as f64
     );
-    assert!(took < Limits::default().max_queue_delay * 10, "{took:?}");
+    assert!(took < Duration::from_secs(20), "{took:?}");
 
     // One box more per camera is over the cost limit: refused, nothing queued.
     let (status, v) = server

@@ -91,6 +91,11 @@ pub struct TestServer {
     task: Option<tokio::task::JoinHandle<crossview_serve::Result<()>>>,
 }
 
+/// The queue budget (`--max-queue-delay`) of the fixtures' servers, in process and spawned:
+/// tests of other guarantees push whole recordings at once on a busy 2-core machine and must
+/// not see frames shed; the overload tests set their own.
+pub const TEST_QUEUE_BUDGET: Duration = Duration::from_secs(60);
+
 /// Starts a server with scene `lab` (3 cameras); `configure` adjusts the configuration.
 pub async fn start(configure: impl FnOnce(&mut ServeConfig)) -> TestServer {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -116,6 +121,7 @@ async fn serve_in(
         models,
         ..ServeConfig::default()
     };
+    config.limits.max_queue_delay = TEST_QUEUE_BUDGET;
     configure(&mut config);
     let server_uses_tls = config.tls.is_some();
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
@@ -480,6 +486,8 @@ pub async fn spawn_serve(bin: &str, args: &[&str]) -> (ChildGuard, String) {
             .args(["serve", "--listen", "127.0.0.1:0"])
             .args(args)
             .env("RUST_LOG", "info")
+            // A flag in `args` wins over it.
+            .env("CROSSVIEW_MAX_QUEUE_DELAY", "60s")
             .stdout(std::process::Stdio::null())
             .stderr(std::process::Stdio::piped())
             .spawn()
