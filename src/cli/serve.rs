@@ -97,8 +97,7 @@ pub struct ServeArgs {
     /// instead of shedding.
     #[arg(long, env = "CROSSVIEW_MAX_QUEUE_DELAY", alias = "frame-deadline", default_value = "500ms", value_parser = parse_duration)]
     pub max_queue_delay: Duration,
-    /// Threads that run every scene's inference, below intake's CPU priority (0: one per
-    /// core).
+    /// Threads that run every scene's inference, scenes taking turns (0: one per core).
     #[arg(long, env = "CROSSVIEW_INFERENCE_THREADS", default_value_t = 0)]
     pub inference_threads: usize,
     /// Frame-id window: batches more than this many ids from the scene's current frame ids

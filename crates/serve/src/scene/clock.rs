@@ -183,7 +183,7 @@ impl ClockWatch {
         let spawned = std::thread::Builder::new()
             .name(format!("clock-{}", spec.name))
             .spawn(move || {
-                super::run_at(super::Priority::Background);
+                super::run_in_background();
                 let shared = Shared {
                     metrics,
                     state,

@@ -5,9 +5,9 @@
 //!
 //! Data flow: `push` validates a batch and feeds the scene's [`Synchronizer`] under one lock;
 //! frames that leave go, still under that lock (so in frame-id order), into the scene's lane
-//! of the inference pool ([`pool`]), whose threads — below intake's CPU priority, so a batch
-//! is synchronized before any frame's inference — associate each frame with one encoder call
-//! and publish the result on a broadcast channel, in queue order.
+//! of the inference pool ([`pool`]: one thread per core, so intake always has its share of the
+//! cores and a batch is synchronized however busy inference is), whose threads associate each
+//! frame with one encoder call and publish the result on a broadcast channel, in queue order.
 //!
 //! Overload costs whole frames, never cameras ([`admission`]): while the scene's queue delay
 //! (how long its oldest queued job has waited) is over `--max-queue-delay`, a *new* frame is
@@ -54,7 +54,7 @@ mod worker;
 
 pub use crate::registry::SceneInfo;
 pub(crate) use pool::Pool;
-use priority::{Priority, run_at};
+use priority::run_in_background;
 pub use published::Published;
 pub use timebase::StreamClock;
 

@@ -1,5 +1,5 @@
 //! The inference pool: a few threads (one per core by default, `--inference-threads`) that
-//! run every scene's queued work, below intake's priority ([`super::Priority::Inference`]).
+//! run every scene's queued work.
 //!
 //! Each scene has a [`Lane`]: its queue of jobs and its worker state (model, tracker, clock
 //! watch). A lane with work waits in the pool's ready list; a pool thread takes the first
@@ -8,9 +8,11 @@
 //! still run one at a time, in order. How long a lane's oldest job has waited
 //! ([`Lane::delay`]) is the scene's queue delay: what admission and shedding look at.
 //!
-//! A fixed, small number of threads (instead of one per scene) keeps the working set of
-//! the machine's caches to a few models at a time and the scheduler's run queue short, so
-//! a frame's wait is its place in the queue, not the luck of 64 threads' time slices.
+//! A fixed, small number of threads (instead of one per scene) leaves intake's threads their
+//! share of the cores — the scheduler shares a core per thread, and 64 busy encoder threads
+//! had left intake a sliver, so batches that arrived in time were refused as late — and keeps
+//! the caches' working set to a few models at a time: a frame's wait is its place in the
+//! queue, not the luck of 64 threads' time slices.
 use std::collections::VecDeque;
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
@@ -67,10 +69,7 @@ impl Pool {
             let s = shared.clone();
             let h = std::thread::Builder::new()
                 .name(format!("inference-{k}"))
-                .spawn(move || {
-                    super::run_at(super::Priority::Inference);
-                    s.run();
-                })
+                .spawn(move || s.run())
                 .map_err(|e| Error::internal_from("cannot start an inference thread", e))?;
             handles.push(h);
         }
