@@ -90,30 +90,24 @@ impl Scene {
         for e in emitted {
             if e.shed {
                 self.metrics.frame_shed(self.name());
-            } else if e.complete() {
-                self.metrics.frame(self.name(), true);
             } else {
-                self.metrics.frame(self.name(), false);
-                tracing::debug!(
-                    scene = self.name(),
-                    frame = e.frame.frame_id,
-                    reason = ?e.reason,
-                    waited = ?e.waited,
-                    "partial frame"
-                );
-                self.metrics
-                    .partial(self.name(), partial_cause(e.reason, timed_out));
-            }
-            match &intake.jobs {
-                Some(lane) => {
-                    self.queued.fetch_add(1, Ordering::AcqRel);
-                    let job = Job::Stream { frame: e, may_shed };
-                    if lane.push(job).is_err() {
-                        self.queued.fetch_sub(1, Ordering::AcqRel);
-                        tracing::error!(scene = self.name(), "encoder worker is gone");
-                    }
+                self.metrics.frame(self.name(), e.complete());
+                if !e.complete() {
+                    tracing::debug!(
+                        scene = self.name(),
+                        frame = e.frame.frame_id,
+                        reason = ?e.reason,
+                        waited = ?e.waited,
+                        "partial frame"
+                    );
+                    self.metrics
+                        .partial(self.name(), partial_cause(e.reason, timed_out));
                 }
-                None => tracing::error!(scene = self.name(), "frame emitted after close"),
+            }
+            self.queued.fetch_add(1, Ordering::AcqRel);
+            if self.lane.push(Job::Stream { frame: e, may_shed }).is_err() {
+                self.queued.fetch_sub(1, Ordering::AcqRel);
+                tracing::error!(scene = self.name(), "frame emitted after close");
             }
         }
         self.metrics

@@ -83,8 +83,6 @@ struct Intake {
     sync: Synchronizer,
     /// The clock sync timeouts run on: wall time, or the stream time of a Kafka partition.
     timebase: timebase::Timebase,
-    /// The scene's lane of the inference pool (`None` once the scene closed).
-    jobs: Option<Arc<Lane>>,
 }
 
 /// A live scene (see the module docs).
@@ -109,7 +107,7 @@ pub struct Scene {
     published: Arc<AtomicU64>,
     /// Wakes the timer task when a new frame starts waiting.
     pub(crate) wake: Notify,
-    /// The scene's lane of the inference pool (drained at close).
+    /// The scene's lane of the inference pool (closed and drained at close).
     lane: Arc<Lane>,
     /// The pool itself, kept running while a scene uses it (its threads end with the last).
     _pool: Arc<Pool>,
@@ -211,7 +209,6 @@ impl Scene {
                 sync: Synchronizer::new(n, sync_timeout, max_pending)
                     .with_window(limits.frame_window),
                 timebase: timebase::Timebase::default(),
-                jobs: Some(lane.clone()),
             }),
             spec,
             serving,
@@ -251,16 +248,10 @@ impl Scene {
     pub async fn swap(&self, info: SceneInfo, encoder: Box<dyn Encoder>) -> Result<()> {
         crate::registry::check_fits(&self.spec, &info)?;
         let (applied, done) = oneshot::channel();
-        {
-            let intake = lock(&self.intake);
-            let jobs = intake
-                .jobs
-                .as_ref()
-                .ok_or_else(|| Error::Unavailable("server is shutting down".into()))?;
-            let model = Box::new(Model { info, encoder });
-            jobs.push(Job::Swap { model, applied })
-                .map_err(|_| Error::Unavailable("server is shutting down".into()))?;
-        }
+        let model = Box::new(Model { info, encoder });
+        self.lane
+            .push(Job::Swap { model, applied })
+            .map_err(|_| Error::Unavailable("server is shutting down".into()))?;
         done.await
             .map_err(|_| Error::Unavailable("encoder worker stopped".into()))
     }
@@ -524,7 +515,7 @@ impl Scene {
                 self.enqueue(&mut intake, emitted, PartialCause::Timeout);
                 tracing::info!(scene = self.name(), flushed = n, "scene intake closed");
             }
-            intake.jobs = None;
+            self.lane.close();
         }
         self.lane.drain();
         lock(&self.results).take();

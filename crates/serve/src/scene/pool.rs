@@ -25,7 +25,7 @@ use crate::error::{Error, Result};
 #[derive(Debug)]
 pub(crate) struct Pool {
     shared: Arc<Shared>,
-    threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
+    threads: Vec<std::thread::JoinHandle<()>>,
 }
 
 #[derive(Debug, Default)]
@@ -75,7 +75,7 @@ impl Pool {
         }
         Ok(Pool {
             shared,
-            threads: Mutex::new(handles),
+            threads: handles,
         })
     }
 
@@ -95,7 +95,7 @@ impl Drop for Pool {
     fn drop(&mut self) {
         lock(&self.shared.ready).closed = true;
         self.shared.wake.notify_all();
-        for h in lock(&self.threads).drain(..) {
+        for h in self.threads.drain(..) {
             if h.join().is_err() {
                 tracing::error!("inference thread panicked");
             }
@@ -178,8 +178,13 @@ impl Lane {
         }
     }
 
-    /// Takes no job any more, waits until the queued ones have run and drops the worker (a
-    /// scene's close).
+    /// Takes no job any more (those queued still run).
+    pub(super) fn close(&self) {
+        lock(&self.jobs).closed = true;
+    }
+
+    /// Closes the lane, waits until the queued jobs have run and drops the worker (a scene's
+    /// close).
     pub(super) fn drain(&self) {
         let mut jobs = lock(&self.jobs);
         jobs.closed = true;

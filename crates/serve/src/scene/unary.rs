@@ -56,25 +56,16 @@ impl Scene {
             .collect();
         self.check_cost("views", frame_id, &counts)?;
         let (tx, rx) = oneshot::channel();
-        {
-            let intake = lock(&self.intake);
-            self.admit(1)?;
-            let jobs = intake
-                .jobs
-                .as_ref()
-                .ok_or_else(|| Error::Unavailable("server is shutting down".into()))?;
-            self.queued.fetch_add(1, Ordering::AcqRel);
-            if jobs
-                .push(Job::Unary {
-                    frame,
-                    started,
-                    reply: tx,
-                })
-                .is_err()
-            {
-                self.queued.fetch_sub(1, Ordering::AcqRel);
-                return Err(Error::Unavailable("server is shutting down".into()));
-            }
+        self.admit(1)?;
+        self.queued.fetch_add(1, Ordering::AcqRel);
+        let job = Job::Unary {
+            frame,
+            started,
+            reply: tx,
+        };
+        if self.lane.push(job).is_err() {
+            self.queued.fetch_sub(1, Ordering::AcqRel);
+            return Err(Error::Unavailable("server is shutting down".into()));
         }
         rx.await
             .map_err(|_| Error::Unavailable("encoder worker stopped".into()))?

@@ -86,13 +86,12 @@ pub(super) struct Worker {
 impl Worker {
     /// Runs one job, queued at `queued_at`.
     pub(super) fn handle(&mut self, job: Job, queued_at: Instant) {
+        let waited = queued_at.elapsed();
         if !matches!(job, Job::Swap { .. }) {
-            self.metrics
-                .queue_delay(&self.spec.name, queued_at.elapsed());
+            self.metrics.queue_delay(&self.spec.name, waited);
         }
         match job {
             Job::Stream { frame: e, may_shed } => {
-                let waited = queued_at.elapsed();
                 let shed = if e.shed {
                     Some(("intake", SHED_AT_INTAKE.to_string()))
                 } else if may_shed && waited > self.max_queue_delay {
@@ -122,11 +121,15 @@ impl Worker {
             } => {
                 self.fenced_now.clear();
                 // The caller counts the error (the service does, once).
-                let r = self.associate_in_time(&frame, queued_at).map(|(ids, _)| {
-                    let spec = &self.spec;
-                    let ids = ids.into_iter().map(|id| identity_out(spec, id, None));
-                    self.result(&frame, started, ids.collect())
-                });
+                let r = self
+                    .check_grace()
+                    .and_then(|()| self.check_queue_wait(waited))
+                    .and_then(|()| self.associate(&frame))
+                    .map(|(ids, _)| {
+                        let spec = &self.spec;
+                        let ids = ids.into_iter().map(|id| identity_out(spec, id, None));
+                        self.result(&frame, started, ids.collect())
+                    });
                 self.queued.fetch_sub(1, Ordering::AcqRel);
                 let _ = reply.send(r);
             }
@@ -202,7 +205,7 @@ impl Worker {
             r.status = ResultStatus::NoModel;
             return (r, None);
         }
-        match self.associate_in_time(frame, Instant::now()) {
+        match self.check_grace().and_then(|()| self.associate(frame)) {
             Ok((ids, embeddings)) => {
                 let tracks = match &mut self.tracker {
                     Some(tracker) => tracker
@@ -231,30 +234,23 @@ impl Worker {
         }
     }
 
-    /// The frame's identities, unless it waited too long (since `queued_at`) to be
-    /// associated at all.
-    fn associate_in_time(
-        &mut self,
-        frame: &Frame,
-        queued_at: Instant,
-    ) -> Result<(Vec<Identity>, FrameEmbeddings)> {
-        self.check_deadline(queued_at)?;
-        self.associate(frame)
-    }
-
-    /// Refuses a job queued at `queued_at` once past the shutdown grace, or — a unary request
-    /// (a stream frame comes here only when it may not be shed, or in time) — once it waited
-    /// in the queue longer than the budget.
-    fn check_deadline(&self, queued_at: Instant) -> Result<()> {
-        let now = Instant::now();
-        let waited = now.saturating_duration_since(queued_at);
-        if lock(&self.close_by).is_some_and(|t| now >= t) {
+    /// Refuses a job once past the shutdown grace.
+    fn check_grace(&self) -> Result<()> {
+        if lock(&self.close_by).is_some_and(|t| Instant::now() >= t) {
             Err(Error::Unavailable(
                 "frame not associated: the server is shutting down and its --shutdown-grace \
                  is over"
                     .into(),
             ))
-        } else if waited > self.max_queue_delay {
+        } else {
+            Ok(())
+        }
+    }
+
+    /// Refuses a unary request that `waited` in the queue longer than the budget (a stream
+    /// frame is shed instead, or — Kafka — associated however long it waited).
+    fn check_queue_wait(&self, waited: Duration) -> Result<()> {
+        if waited > self.max_queue_delay {
             Err(Error::DeadlineExceeded(format!(
                 "frame not associated: it waited {:.3}s in the inference queue, over the \
                  budget of {:?} (--max-queue-delay)",
