@@ -52,6 +52,7 @@ fn bench_encoder(c: &mut Criterion) {
         (0..CAMERAS)
             .map(|i| CameraSpec {
                 offset: 0,
+                offset_ms: 0,
                 name: format!("C{}", i + 1),
                 width: 1920,
                 height: 1080,

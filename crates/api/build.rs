@@ -20,7 +20,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let out = PathBuf::from(std::env::var("OUT_DIR")?);
     tonic_prost_build::configure()
         .file_descriptor_set_path(out.join("crossview_descriptor.bin"))
-        .compile_protos(&protos, &[dir])?;
+        .compile_protos(&protos, &[dir, protoc_bin_vendored::include_path()?])?;
     println!("cargo:rerun-if-changed=../../proto");
     Ok(())
 }

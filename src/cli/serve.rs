@@ -29,7 +29,10 @@ pub struct ServeArgs {
     pub models: Vec<String>,
     /// A scene declared by its cameras before any model exists: `NAME=cam1:1920x1080,cam2:...`
     /// or a JSON file holding a recording's scene header (repeatable; `;` separates several in
-    /// the environment). Its batches are accepted (and recorded) and its results say
+    /// the environment). A camera's clock offset follows its size: `@+2` frames, or `@+120ms`
+    /// for a camera that sends capture times; the scene's frame rate, which capture times
+    /// need, ends the list: `NAME=a:1920x1080,b:1920x1080@10fps` (default: the model's
+    /// training rate). Its batches are accepted (and recorded) and its results say
     /// `"status": "no_model"` until a model is loaded.
     #[arg(long = "scene", env = "CROSSVIEW_SCENES", value_delimiter = ';')]
     pub scenes: Vec<String>,
@@ -43,6 +46,11 @@ pub struct ServeArgs {
     /// Pending frames per scene beyond which the oldest is emitted as partial.
     #[arg(long, env = "CROSSVIEW_MAX_PENDING_FRAMES", default_value_t = 64)]
     pub max_pending_frames: usize,
+    /// How far a batch's capture time may fall from its frame's tick, after the camera's clock
+    /// offset (e.g. `20ms`); further is refused. Default: half the scene's period (every time
+    /// has a frame).
+    #[arg(long, env = "CROSSVIEW_TIME_TOLERANCE", value_parser = parse_duration)]
+    pub time_tolerance: Option<Duration>,
     /// Accepted bearer token (repeatable); with none (and no --api-key-file) auth is off, and
     /// then the server listens beyond loopback only with --allow-unauthenticated. A blank
     /// key, or a key source that yields no key, is a start-up error (never "auth off").
@@ -448,6 +456,7 @@ impl ServeArgs {
             }),
             kafka: self.kafka.to_config()?,
             inference_threads: self.inference_threads,
+            time_tolerance: self.time_tolerance,
         })
     }
 }

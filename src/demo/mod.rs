@@ -134,6 +134,7 @@ fn frame_batches(scene: &str, spec: &SceneSpec, frame: &Frame) -> Vec<pb::Batch>
             scene: scene.to_string(),
             camera: cam.name.clone(),
             frame_id: frame.frame_id,
+            time: None,
             detections: view
                 .as_deref()
                 .unwrap_or_default()

@@ -18,6 +18,7 @@ fn cameras() -> Vec<CameraSpec> {
     (0..3)
         .map(|i| CameraSpec {
             offset: 0,
+            offset_ms: 0,
             name: format!("cam{i}"),
             width: 640,
             height: 480,

@@ -87,6 +87,7 @@ async fn served_identities_score_like_eval_on_wildtrack_validation() {
             let batch = crossview_core::Batch {
                 camera: names[c].clone(),
                 frame_id: frame.frame_id,
+                time: None,
                 detections: frame.views[c].clone().unwrap_or_default(),
             };
             let r = http

@@ -17,6 +17,7 @@ pub(crate) fn recording(cameras: usize, frames: usize, ids: bool) -> Recording {
     let cams: Vec<CameraSpec> = (0..cameras)
         .map(|c| CameraSpec {
             offset: 0,
+            offset_ms: 0,
             name: format!("cam{c}"),
             width: 100,
             height: 100,

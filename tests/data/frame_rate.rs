@@ -17,6 +17,7 @@ fn scene() -> SceneSpec {
             .iter()
             .map(|n| CameraSpec {
                 offset: 0,
+                offset_ms: 0,
                 name: (*n).into(),
                 width: 640,
                 height: 480,

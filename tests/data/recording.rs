@@ -14,12 +14,14 @@ fn scene() -> SceneSpec {
         cameras: vec![
             CameraSpec {
                 offset: 0,
+                offset_ms: 0,
                 name: "a".into(),
                 width: 640,
                 height: 480,
             },
             CameraSpec {
                 offset: 0,
+                offset_ms: 0,
                 name: "b".into(),
                 width: 1920,
                 height: 1080,
@@ -69,16 +71,19 @@ fn round_trip_keeps_frames_views_and_empty_batches() {
         Batch {
             camera: "b".into(),
             frame_id: 10,
+            time: None,
             detections: vec![det(5.0, Some(3)), det(50.0, None)],
         },
         Batch {
             camera: "a".into(),
             frame_id: 10,
+            time: None,
             detections: vec![],
         },
         Batch {
             camera: "a".into(),
             frame_id: 5,
+            time: None,
             detections: vec![det(1.0, Some(1))],
         },
     ];
@@ -116,6 +121,7 @@ fn clock_offsets_group_batches_and_round_trip() {
     let batch = |camera: &str, frame_id: u64, x: f32| Batch {
         camera: camera.into(),
         frame_id,
+        time: None,
         detections: vec![det(x, None)],
     };
     let batches = vec![
@@ -166,6 +172,7 @@ fn streaming_reader_and_writer_agree() {
         let batch = Batch {
             camera: if f % 2 == 0 { "a" } else { "b" }.into(),
             frame_id: f,
+            time: None,
             detections: vec![det(f as f32, Some(f))],
         };
         writer.write_batch(&batch).unwrap();
@@ -187,6 +194,7 @@ fn writer_rejects_unknown_camera() {
         .write_batch(&Batch {
             camera: "zz".into(),
             frame_id: 0,
+            time: None,
             detections: vec![],
         })
         .unwrap_err();
@@ -372,6 +380,7 @@ fn from_batches_errors() {
         Batch {
             camera: "a".into(),
             frame_id: 1,
+            time: None,
             detections: vec![],
         };
         2
@@ -383,6 +392,7 @@ fn from_batches_errors() {
     let unknown = vec![Batch {
         camera: "q".into(),
         frame_id: 1,
+        time: None,
         detections: vec![],
     }];
     assert!(matches!(
@@ -392,6 +402,7 @@ fn from_batches_errors() {
     let nan = vec![Batch {
         camera: "a".into(),
         frame_id: 1,
+        time: None,
         detections: vec![Detection::new([f32::NAN, 0.0, 1.0, 1.0])],
     }];
     match Recording::from_batches(scene(), nan) {
@@ -452,6 +463,7 @@ fn duplicates_are_found_with_more_than_64_cameras() {
     let cameras: Vec<CameraSpec> = (0..70)
         .map(|i| CameraSpec {
             offset: 0,
+            offset_ms: 0,
             name: format!("c{i}"),
             width: 10,
             height: 10,
@@ -467,6 +479,7 @@ fn duplicates_are_found_with_more_than_64_cameras() {
             .write_batch(&Batch {
                 camera: cam.into(),
                 frame_id: 3,
+                time: None,
                 detections: vec![],
             })
             .unwrap();

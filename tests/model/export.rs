@@ -17,6 +17,7 @@ pub(super) fn metadata(n: usize) -> ModelMetadata {
         (0..n)
             .map(|i| CameraSpec {
                 offset: 0,
+                offset_ms: 0,
                 name: format!("cam{i}"),
                 width: 1920,
                 height: 1080,

@@ -24,7 +24,7 @@ proptest! {
         let weights = EncoderWeights::random(3, config, 2).unwrap();
         let meta = ModelMetadata::new(
             (0..3)
-                .map(|i| CameraSpec { offset: 0,  name: format!("c{i}"), width: 10, height: 10 })
+                .map(|i| CameraSpec { offset: 0, offset_ms: 0, name: format!("c{i}"), width: 10, height: 10 })
                 .collect(),
         );
         let mut enc =

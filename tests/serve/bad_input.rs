@@ -29,6 +29,7 @@ async fn associate_error(
         .associate(pb::AssociateRequest {
             scene: "lab".into(),
             frame_id: 1,
+            time: None,
             views: vec![pb::CameraView {
                 camera: "c0".into(),
                 detections,
@@ -305,6 +306,7 @@ async fn full_queue_sheds_load() {
         .associate(pb::AssociateRequest {
             scene: "lab".into(),
             frame_id: 1,
+            time: None,
             views: vec![],
         })
         .await

@@ -119,6 +119,7 @@ async fn a_camera_that_turns_stops_fitting_and_a_late_clock_does_not() {
             let batch = Batch {
                 camera: names[c].clone(),
                 frame_id: frame.frame_id + if c == LAGGING { LAG } else { 0 },
+                time: None,
                 detections: dets,
             };
             let r = http.post(&url).json(&batch).send().await.unwrap();

@@ -40,7 +40,7 @@ fn configure(c: &mut ServeConfig, declared: Option<SceneSpec>) {
     };
     c.scenes = declared
         .into_iter()
-        .map(|spec| SceneDecl { spec })
+        .map(|spec| SceneDecl { spec, fps: None })
         .collect();
 }
 
@@ -115,6 +115,7 @@ async fn run_until(
             let batch = Batch {
                 camera: names[c].clone(),
                 frame_id,
+                time: None,
                 detections: dets,
             };
             let r = http.post(&url).json(&batch).send().await.unwrap();

@@ -154,7 +154,7 @@ proptest! {
     ) {
         // As protobuf, through the gRPC conversions.
         for (cam, dets) in &cams {
-            let b = pb::Batch { scene: "lab".into(), camera: cam.clone(), frame_id, detections: dets.clone() };
+            let b = pb::Batch { scene: "lab".into(), camera: cam.clone(), frame_id, time: None, detections: dets.clone() };
             if let Ok((scene, b)) = grpc::batch_from_pb(b) {
                 // And the same batch as JSON text, through the HTTP decoding.
                 let json = serde_json::to_vec(&b).unwrap();
@@ -167,6 +167,7 @@ proptest! {
         let req = pb::AssociateRequest {
             scene: "lab".into(),
             frame_id,
+            time: None,
             views: cams.into_iter().map(|(camera, detections)| pb::CameraView { camera, detections }).collect(),
         };
         if let Ok((scene, r)) = grpc::associate_from_pb(req) {

@@ -280,6 +280,7 @@ async fn an_11_byte_varint_is_refused_alone() {
         scene: "lab".into(),
         camera: "c1".into(),
         frame_id: 0,
+        time: None,
         detections: vec![],
     });
     // Field 3 (frame_id, varint) with 11 bytes: ten continuation bytes, then a last one.

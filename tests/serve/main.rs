@@ -5,6 +5,7 @@
 mod auth_and_origin;
 mod bad_input;
 mod camera_fit;
+mod capture_times;
 mod careless;
 mod clock_offsets;
 mod connections;

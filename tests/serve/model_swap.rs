@@ -180,12 +180,14 @@ async fn corrupt_and_foreign_models_are_refused_and_the_old_one_keeps_serving() 
     let other = vec![
         CameraSpec {
             offset: 0,
+            offset_ms: 0,
             name: "left".into(),
             width: 640,
             height: 480,
         },
         CameraSpec {
             offset: 0,
+            offset_ms: 0,
             name: "right".into(),
             width: 640,
             height: 480,
@@ -255,6 +257,7 @@ async fn a_declared_scene_publishes_no_model_results_until_its_model_arrives() {
         .associate(pb::AssociateRequest {
             scene: "lab".into(),
             frame_id: 2,
+            time: None,
             views: vec![],
         })
         .await

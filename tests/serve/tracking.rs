@@ -95,6 +95,7 @@ async fn people_standing_still_keep_their_track_ids() {
         .associate(pb::AssociateRequest {
             scene: "lab".into(),
             frame_id: 51,
+            time: None,
             views: (0..3)
                 .map(|c| pb::CameraView {
                     camera: CAMERAS[c].into(),

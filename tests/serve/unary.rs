@@ -13,6 +13,7 @@ async fn unary_association_over_grpc_and_http() {
     let req = pb::AssociateRequest {
         scene: "lab".into(),
         frame_id: 42,
+        time: None,
         views: (0..3)
             .map(|c| pb::CameraView {
                 camera: CAMERAS[c].into(),
@@ -85,6 +86,7 @@ async fn unary_association_over_grpc_and_http() {
         .associate(pb::AssociateRequest {
             scene: "lab".into(),
             frame_id: 43,
+            time: None,
             views: vec![pb::CameraView {
                 camera: "c1".into(),
                 detections: dets(1, 43, 2),

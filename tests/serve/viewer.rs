@@ -64,6 +64,7 @@ impl Pusher {
                     let batch = crossview_core::Batch {
                         camera: camera.clone(),
                         frame_id: frame.frame_id,
+                        time: None,
                         detections: dets.to_vec(),
                     };
                     let mut req = http.post(&url).json(&batch);

@@ -16,6 +16,7 @@ pub fn synthetic(frames: usize, people: usize, seed: u64) -> Recording {
         .iter()
         .map(|n| CameraSpec {
             offset: 0,
+            offset_ms: 0,
             name: n.to_string(),
             width: W,
             height: H,

@@ -84,6 +84,7 @@ async fn main() -> anyhow::Result<()> {
             let batch = crossview_core::Batch {
                 camera: names[c].clone(),
                 frame_id: frame.frame_id,
+                time: None,
                 detections,
             };
             let r = http.post(&url).json(&batch).send().await?;

@@ -1,5 +1,6 @@
 //! Every conversion between the protobuf messages ([`crate::pb`]) and the domain and JSON types
 //! (`crossview_core`, [`crate::types`]), in both directions.
+use crossview_core::capture::CaptureTime;
 use crossview_core::identity::Identity;
 use crossview_core::{Batch, Detection, Error, Frame, Result, SceneSpec};
 
@@ -24,6 +25,35 @@ pub(crate) fn detections_from_pb(field: &str, dets: Vec<pb::Detection>) -> Resul
         .collect()
 }
 
+/// A protobuf timestamp → a capture time; out of range (before 1970, past 2262, nanos outside
+/// `0..1e9`) is an error naming `field`.
+pub fn time_from_pb(field: &str, t: Option<prost_types::Timestamp>) -> Result<Option<CaptureTime>> {
+    let Some(t) = t else { return Ok(None) };
+    if !(0..1_000_000_000).contains(&t.nanos) {
+        return Err(Error::invalid(
+            field,
+            format!("nanos {} is outside 0..999999999", t.nanos),
+        ));
+    }
+    let ns = t
+        .seconds
+        .checked_mul(1_000_000_000)
+        .and_then(|s| s.checked_add(i64::from(t.nanos)))
+        .ok_or_else(|| Error::invalid(field, format!("{} s is beyond 2262", t.seconds)))?;
+    CaptureTime::from_unix_nanos(ns)
+        .map(Some)
+        .map_err(|e| Error::invalid(field, e))
+}
+
+/// A capture time → a protobuf timestamp.
+pub fn time_to_pb(t: CaptureTime) -> prost_types::Timestamp {
+    let ns = t.unix_nanos();
+    prost_types::Timestamp {
+        seconds: ns.div_euclid(1_000_000_000),
+        nanos: ns.rem_euclid(1_000_000_000) as i32,
+    }
+}
+
 /// Protobuf batch → (scene, domain batch).
 pub fn batch_from_pb(b: pb::Batch) -> Result<(String, Batch)> {
     let detections = detections_from_pb("detections", b.detections)?;
@@ -32,6 +62,7 @@ pub fn batch_from_pb(b: pb::Batch) -> Result<(String, Batch)> {
         Batch {
             camera: b.camera,
             frame_id: b.frame_id,
+            time: time_from_pb("time", b.time)?,
             detections,
         },
     ))
@@ -55,6 +86,7 @@ pub fn associate_from_pb(r: pb::AssociateRequest) -> Result<(String, types::Asso
         types::AssociateRequest {
             frame_id: r.frame_id,
             views,
+            time: time_from_pb("time", r.time)?,
         },
     ))
 }
@@ -109,6 +141,7 @@ pub fn result_to_pb(r: &types::FrameResult) -> pb::FrameResult {
     pb::FrameResult {
         scene: r.scene.clone(),
         frame_id: r.frame_id,
+        time: r.time.map(time_to_pb),
         complete: r.complete,
         missing_cameras: r.missing_cameras.clone(),
         fenced_cameras: r.fenced_cameras.clone(),
@@ -211,6 +244,9 @@ pub fn clock_to_pb(c: types::ClockEstimate) -> pb::ClockEstimate {
                 offset_frames: c.offset_frames.unwrap_or(0.0),
                 offset_ids: c.offset_ids.unwrap_or(0),
                 confidence: c.confidence,
+                offset_ms: c.offset_ms,
+                drift_ms_per_min: c.drift_ms_per_min,
+                jitter_ms: c.jitter_ms,
             })
             .collect(),
     }
@@ -237,6 +273,7 @@ pub fn batch_to_pb(scene: &str, b: &Batch) -> pb::Batch {
         camera: b.camera.clone(),
         frame_id: b.frame_id,
         detections: b.detections.iter().map(detection_to_pb).collect(),
+        time: b.time.map(time_to_pb),
     }
 }
 
@@ -266,6 +303,7 @@ mod tests {
     fn a_frame_with_boxes_is_the_result_plus_the_reporting_cameras_boxes() {
         let cam = |name: &str| CameraSpec {
             offset: 0,
+            offset_ms: 0,
             name: name.into(),
             width: 640,
             height: 480,
@@ -287,6 +325,7 @@ mod tests {
         let result = types::FrameResult {
             scene: "s".into(),
             frame_id: 3,
+            time: None,
             complete: false,
             missing_cameras: vec!["b".into()],
             fenced_cameras: vec![],

@@ -3,6 +3,7 @@
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
+use crossview_core::capture::CaptureTime;
 use crossview_core::{CameraSpec, Detection};
 
 /// One camera's detections in a unary association request.
@@ -28,6 +29,12 @@ pub struct AssociateRequest {
     pub frame_id: u64,
     /// One entry per reporting camera.
     pub views: Vec<CameraView>,
+    /// The frame's capture time (RFC 3339, or seconds since the Unix epoch): the result's
+    /// frame id is then its tick (the scene must declare its frame rate), and a `frame_id`
+    /// given too must be that tick.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<String>, format = DateTime)]
+    pub time: Option<CaptureTime>,
 }
 
 /// One box of an identity.
@@ -63,6 +70,11 @@ pub struct FrameResult {
     pub scene: String,
     /// The frame.
     pub frame_id: u64,
+    /// The frame's tick time, for a scene fed capture times (`frame_id / fps` seconds after
+    /// the Unix epoch, RFC 3339); absent otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<String>, format = DateTime)]
+    pub time: Option<CaptureTime>,
     /// True when every camera reported.
     pub complete: bool,
     /// Cameras that did not report.
@@ -133,7 +145,8 @@ pub struct BatchAck {
     pub scene: String,
     /// The batch's camera.
     pub camera: String,
-    /// The batch's frame id.
+    /// The batch's frame id: the camera's own id (for a batch with a capture time, the tick
+    /// of its time less the camera's clock offset in milliseconds).
     pub frame_id: u64,
     /// Always true (a refused batch gets an error instead).
     pub accepted: bool,
@@ -225,6 +238,17 @@ pub struct CameraClock {
     pub offset_ids: Option<i64>,
     /// Confidence in `[0, 1]` (0 when unknown).
     pub confidence: f32,
+    /// A camera that sends capture times: its clock offset in milliseconds (the whole frames
+    /// the watch found, times the period, plus where within the period its captures fall);
+    /// absent for cameras that send frame ids, or before enough captures.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub offset_ms: Option<f64>,
+    /// How fast that offset moves, in ms per minute (a camera clock that gains: positive).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub drift_ms_per_min: Option<f64>,
+    /// How much single captures scatter about it (standard deviation, ms).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub jitter_ms: Option<f64>,
 }
 
 /// The query of `GET /v1/scenes/{scene}/events`. Unknown parameters are ignored.

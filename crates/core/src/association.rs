@@ -353,6 +353,7 @@ mod tests {
             cameras: (0..n)
                 .map(|i| CameraSpec {
                     offset: 0,
+                    offset_ms: 0,
                     name: format!("cam{i}"),
                     width: 100,
                     height: 100,

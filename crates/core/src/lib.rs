@@ -7,6 +7,7 @@
 
 pub mod association;
 pub mod calibration;
+pub mod capture;
 pub mod distances;
 pub mod embeddings;
 mod error;

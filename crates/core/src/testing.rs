@@ -30,6 +30,7 @@ pub fn cameras(n: usize, width: u32, height: u32) -> Vec<CameraSpec> {
     (0..n)
         .map(|i| CameraSpec {
             offset: 0,
+            offset_ms: 0,
             name: format!("c{i}"),
             width,
             height,

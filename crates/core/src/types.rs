@@ -2,6 +2,7 @@
 //! SPEC §7 recording/API format.
 use serde::{Deserialize, Serialize};
 
+use crate::capture::CaptureTime;
 use crate::{Error, Result};
 
 /// The frame a camera's frame id `frame_id` belongs to when its clock runs `offset` ids late
@@ -23,6 +24,12 @@ pub struct CameraSpec {
     #[serde(default, skip_serializing_if = "is_zero")]
     #[cfg_attr(feature = "openapi", schema(default = 0))]
     pub offset: i64,
+    /// **[ours]** Clock offset in milliseconds, for a camera that sends capture times: its
+    /// batch captured at `t` goes to the tick nearest `t − offset_ms` (less `offset` whole
+    /// frames). 0 (the default, left out of JSON) for a camera in sync.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    #[cfg_attr(feature = "openapi", schema(default = 0))]
+    pub offset_ms: i64,
 }
 
 fn is_zero(v: &i64) -> bool {
@@ -36,6 +43,8 @@ impl CameraSpec {
     pub const MAX_SIDE: u32 = 100_000;
     /// Largest clock offset either way, in frame ids.
     pub const MAX_OFFSET: i64 = 1_000_000;
+    /// Largest clock offset in milliseconds either way (a day).
+    pub const MAX_OFFSET_MS: i64 = 86_400_000;
 
     /// A camera in sync (offset 0).
     pub fn new(name: impl Into<String>, width: u32, height: u32) -> Self {
@@ -44,6 +53,7 @@ impl CameraSpec {
             width,
             height,
             offset: 0,
+            offset_ms: 0,
         }
     }
 
@@ -87,6 +97,13 @@ impl CameraSpec {
                     Self::MAX_SIDE
                 ));
             }
+        }
+        if self.offset_ms.unsigned_abs() > Self::MAX_OFFSET_MS.unsigned_abs() {
+            return Err(format!(
+                "camera '{shown}' has offset {} ms; it must be within ±{} ms",
+                self.offset_ms,
+                Self::MAX_OFFSET_MS
+            ));
         }
         if self.offset.unsigned_abs() > Self::MAX_OFFSET.unsigned_abs() {
             return Err(format!(
@@ -286,25 +303,63 @@ pub fn check_fps(fps: f64) -> std::result::Result<(), String> {
 pub struct BatchLine<'a> {
     pub camera: &'a str,
     pub frame_id: u64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub time: Option<CaptureTime>,
     pub detections: &'a [Detection],
 }
 
 /// One camera's detections for one frame: a line of a recording, or one pushed batch.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "BatchWire")]
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct Batch {
     /// The camera's name in its scene.
     pub camera: String,
     /// The camera's frame id (its own clock; see [`CameraSpec::offset`]): a whole number
-    /// within `0..=2^64 − 1` (`7` or `7.0`).
-    #[serde(deserialize_with = "crate::integral::u64")]
+    /// within `0..=2^64 − 1` (`7` or `7.0`). May be left out when `time` is given (0 then
+    /// stands for "none", as in protobuf); given with a time, it must be the camera's own tick
+    /// of that time (`round(time · fps)`, within the scene's tolerance).
+    #[serde(default, deserialize_with = "crate::integral::u64")]
     #[cfg_attr(
         feature = "openapi",
         schema(minimum = 0, maximum = 18446744073709551615_u64)
     )]
     pub frame_id: u64,
+    /// **[ours]** When the camera captured the frame (RFC 3339, or seconds since the Unix
+    /// epoch): the scene groups it into the tick nearest this time less the camera's clock
+    /// offset ([`crate::capture`]; the scene must declare its frame rate).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[cfg_attr(feature = "openapi", schema(value_type = Option<String>, format = DateTime))]
+    pub time: Option<CaptureTime>,
     /// The boxes the camera saw (none: it saw nobody).
     pub detections: Vec<Detection>,
+}
+
+/// The wire form of a [`Batch`]: a frame id, a capture time or both.
+#[derive(Deserialize)]
+struct BatchWire {
+    camera: String,
+    #[serde(default, deserialize_with = "crate::integral::option_u64")]
+    frame_id: Option<u64>,
+    #[serde(default)]
+    time: Option<CaptureTime>,
+    detections: Vec<Detection>,
+}
+
+impl TryFrom<BatchWire> for Batch {
+    type Error = String;
+
+    fn try_from(w: BatchWire) -> std::result::Result<Self, String> {
+        if w.frame_id.is_none() && w.time.is_none() {
+            return Err("missing field `frame_id` (or `time`, a capture time)".into());
+        }
+        Ok(Batch {
+            camera: w.camera,
+            frame_id: w.frame_id.unwrap_or(0),
+            time: w.time,
+            detections: w.detections,
+        })
+    }
 }
 
 /// All cameras' detections for one synchronized frame, indexed by camera index.

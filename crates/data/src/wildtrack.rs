@@ -41,6 +41,7 @@ pub fn scene() -> SceneSpec {
             .iter()
             .map(|name| CameraSpec {
                 offset: 0,
+                offset_ms: 0,
                 name: name.to_string(),
                 width: WIDTH,
                 height: HEIGHT,

@@ -222,7 +222,11 @@ impl ModelMetadata {
 fn without_offsets(cameras: Vec<CameraSpec>) -> Vec<CameraSpec> {
     cameras
         .into_iter()
-        .map(|c| CameraSpec { offset: 0, ..c })
+        .map(|c| CameraSpec {
+            offset: 0,
+            offset_ms: 0,
+            ..c
+        })
         .collect()
 }
 
@@ -234,12 +238,14 @@ mod tests {
         vec![
             CameraSpec {
                 offset: 0,
+                offset_ms: 0,
                 name: "a".into(),
                 width: 1920,
                 height: 1080,
             },
             CameraSpec {
                 offset: 0,
+                offset_ms: 0,
                 name: "b".into(),
                 width: 640,
                 height: 480,

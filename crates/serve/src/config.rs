@@ -41,19 +41,30 @@ impl ModelSpec {
 /// A scene declared by its cameras alone (no model yet): batches are accepted, recorded and
 /// published unassociated until a model for it is loaded (`--model NAME=path` naming a file
 /// that appears later, picked up on reload).
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct SceneDecl {
     /// Name and cameras (names and image sizes, in camera-index order).
     pub spec: SceneSpec,
+    /// The scene's frame rate (`...@10fps`, a header's `"fps"`): what capture times are
+    /// grouped by ([`crossview_core::capture`]); `None`: the model's training rate, if any.
+    pub fps: Option<f64>,
 }
 
 impl SceneDecl {
-    /// Parses `NAME=cam1:1920x1080,cam2:1280x720,...`, or the path of a JSON file holding a
-    /// SPEC §7 scene header `{"scene": {"name", "cameras": [{"name", "width", "height"}]}}`
-    /// (a recording's first line is one).
+    /// Parses `NAME=cam1:1920x1080,cam2:1280x720,...[@10fps]`, or the path of a JSON file
+    /// holding a SPEC §7 scene header `{"scene": {"name", "cameras": [{"name", "width",
+    /// "height"}]}, "fps": 10}` (a recording's first line is one).
     pub fn parse(s: &str) -> Result<Self> {
+        let mut fps = None;
         let spec = match s.split_once('=') {
             Some((name, cams)) if !name.contains('/') => {
+                let cams = match cams.rsplit_once('@') {
+                    Some((rest, rate)) if rate.ends_with("fps") => {
+                        fps = Some(parse_fps(rate)?);
+                        rest
+                    }
+                    _ => cams,
+                };
                 let cameras = cams
                     .split(',')
                     .map(|c| parse_camera(c.trim()))
@@ -84,10 +95,17 @@ impl SceneDecl {
                 #[derive(serde::Deserialize)]
                 struct Header {
                     scene: SceneSpec,
+                    #[serde(default)]
+                    fps: Option<f64>,
                 }
                 let h: Header = serde_json::from_str(&first).map_err(|e| {
                     Error::invalid("--scene", format!("{s}: not a scene header: {e}"))
                 })?;
+                if let Some(f) = h.fps {
+                    crossview_core::types::check_fps(f)
+                        .map_err(|e| Error::invalid("--scene", format!("{s}: {e}")))?;
+                }
+                fps = h.fps;
                 h.scene
             }
         };
@@ -107,32 +125,51 @@ impl SceneDecl {
                 ));
             }
         }
-        Ok(SceneDecl { spec })
+        Ok(SceneDecl { spec, fps })
     }
+}
+
+/// `10fps`, `29.97fps`: a frame rate in (0, 1000].
+fn parse_fps(s: &str) -> Result<f64> {
+    let bad = |why: String| Error::invalid("--scene", format!("'@{s}': {why}"));
+    let v: f64 = s
+        .trim_end_matches("fps")
+        .parse()
+        .map_err(|_| bad("not a rate like @10fps".into()))?;
+    crossview_core::types::check_fps(v).map_err(bad)?;
+    Ok(v)
 }
 
 /// Longest scene header `--scene FILE` reads (a header of many cameras is a few KiB).
 const MAX_HEADER_BYTES: u64 = 1 << 20;
 
-/// `name:WIDTHxHEIGHT`, optionally followed by the camera's clock offset in frame ids,
-/// `@+N` or `@-N` (what `crossview sync-check` reports).
+/// `name:WIDTHxHEIGHT`, optionally followed by the camera's clock offset: in frame ids,
+/// `@+N` or `@-N` (what `crossview sync-check` reports), or in milliseconds, `@+120ms` (a
+/// camera that sends capture times).
 fn parse_camera(s: &str) -> Result<CameraSpec> {
     let bad = || {
         Error::invalid(
             "--scene",
-            format!("'{s}' is not CAMERA:WIDTHxHEIGHT or CAMERA:WIDTHxHEIGHT@OFFSET"),
+            format!(
+                "'{s}' is not CAMERA:WIDTHxHEIGHT, CAMERA:WIDTHxHEIGHT@OFFSET or \
+                 CAMERA:WIDTHxHEIGHT@OFFSETms"
+            ),
         )
     };
-    let (body, offset) = match s.rsplit_once('@') {
+    let (body, offset, offset_ms) = match s.rsplit_once('@') {
         Some((body, o)) if !o.contains(':') => {
+            let (o, ms) = match o.strip_suffix("ms") {
+                Some(o) => (o, true),
+                None => (o, false),
+            };
             let o: i64 = o
                 .strip_prefix('+')
                 .unwrap_or(o)
                 .parse()
                 .map_err(|_| bad())?;
-            (body, o)
+            if ms { (body, 0, o) } else { (body, o, 0) }
         }
-        _ => (s, 0),
+        _ => (s, 0, 0),
     };
     let (name, size) = body.rsplit_once(':').ok_or_else(bad)?;
     let (w, h) = size.split_once('x').ok_or_else(bad)?;
@@ -140,6 +177,7 @@ fn parse_camera(s: &str) -> Result<CameraSpec> {
         (w.parse().map_err(|_| bad())?, h.parse().map_err(|_| bad())?);
     let camera = CameraSpec {
         offset,
+        offset_ms,
         ..CameraSpec::new(name, width, height)
     };
     camera.check().map_err(|e| Error::invalid("--scene", e))?;
@@ -343,6 +381,9 @@ pub struct ServeConfig {
     pub kafka: Option<crate::transport::kafka::config::KafkaConfig>,
     /// Threads of the inference pool every scene's work runs on (0: one per core).
     pub inference_threads: usize,
+    /// How far a capture time may fall from its frame's tick (`--time-tolerance`; `None`:
+    /// half the scene's period).
+    pub time_tolerance: Option<Duration>,
 }
 
 impl std::fmt::Debug for ServeConfig {
@@ -366,6 +407,7 @@ impl std::fmt::Debug for ServeConfig {
             .field("record", &self.record)
             .field("kafka", &self.kafka)
             .field("inference_threads", &self.inference_threads)
+            .field("time_tolerance", &self.time_tolerance)
             .finish()
     }
 }
@@ -388,6 +430,7 @@ impl Default for ServeConfig {
             record: None,
             kafka: None,
             inference_threads: 0,
+            time_tolerance: None,
         }
     }
 }

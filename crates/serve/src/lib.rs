@@ -111,6 +111,8 @@ impl Server {
             }
         }
         let mut specs: Vec<crossview_core::SceneSpec> = Vec::new();
+        // Each scene's frame rate: declared, else the model's training rate.
+        let mut rates: Vec<Option<f64>> = Vec::new();
         for d in &config.scenes {
             if specs.iter().any(|s| s.name == d.spec.name) {
                 return Err(Error::invalid(
@@ -119,16 +121,22 @@ impl Server {
                 ));
             }
             specs.push(d.spec.clone());
+            rates.push(
+                d.fps
+                    .or_else(|| models.get(&d.spec.name).and_then(|m| m.0.fps)),
+            );
         }
         for (name, (info, _)) in &models {
             if !specs.iter().any(|s| &s.name == name) {
                 specs.push(info.spec.clone());
+                rates.push(info.fps);
             }
         }
         let recorder = match &config.record {
             Some(rc) => Some(record::Recorder::start(
                 rc.clone(),
                 &specs,
+                &rates,
                 metrics.clone(),
             )?),
             None => None,
@@ -140,7 +148,7 @@ impl Server {
         let pool = Arc::new(scene::Pool::start(threads)?);
         tracing::info!(threads, "inference pool started");
         let mut started = Vec::new();
-        for (k, spec) in specs.into_iter().enumerate() {
+        for (k, (spec, fps)) in specs.into_iter().zip(rates).enumerate() {
             let model = models.remove(&spec.name);
             match &model {
                 Some((info, _)) => {
@@ -156,6 +164,8 @@ impl Server {
                 limits: config.limits,
                 tracker: config.tracker.clone(),
                 pool: pool.clone(),
+                fps,
+                time_tolerance: config.time_tolerance,
             };
             started.push(Scene::start(
                 spec,

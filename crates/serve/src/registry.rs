@@ -22,6 +22,8 @@ pub struct SceneInfo {
     pub association: AssociationConfig,
     /// Model version string.
     pub version: String,
+    /// The frame rate the model was trained at, if its file says (`crossview.train_fps`).
+    pub fps: Option<f64>,
 }
 
 /// The scene description a model's metadata defines, checked against `limits`; `version` is
@@ -50,7 +52,17 @@ pub fn scene_info(
         },
         association: meta.association_config(),
         version,
+        fps: trained_fps(meta),
     })
+}
+
+/// The frame rate of the recording the model was trained on (its `crossview.train_fps`,
+/// `{"fps": 2.0, ...}`), if it says: a scene's clock when nothing else declares one.
+fn trained_fps(meta: &ModelMetadata) -> Option<f64> {
+    let v: serde_json::Value = serde_json::from_str(meta.extra.get("crossview.train_fps")?).ok()?;
+    v["fps"]
+        .as_f64()
+        .filter(|&f| crossview_core::types::check_fps(f).is_ok())
 }
 
 /// The version a served model goes by: its `crossview.version` and the first 12 hex digits

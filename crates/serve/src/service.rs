@@ -140,9 +140,10 @@ impl Service {
         let Batch {
             camera,
             frame_id,
+            time,
             detections,
         } = batch;
-        self.track(s.push(&camera, frame_id, detections))?;
+        let frame_id = self.track(s.push(&camera, frame_id, time, detections))?;
         Ok(BatchAck {
             scene: scene.to_string(),
             camera,
@@ -159,7 +160,7 @@ impl Service {
             .into_iter()
             .map(|v| (v.camera, v.detections))
             .collect();
-        self.track(s.associate(req.frame_id, views).await)
+        self.track(s.associate(req.frame_id, req.time, views).await)
     }
 
     /// The results of `scene` from now on. With `conn` (the subscriber's connection) and a

@@ -40,18 +40,21 @@ pub fn cameras() -> Vec<CameraSpec> {
     vec![
         CameraSpec {
             offset: 0,
+            offset_ms: 0,
             name: "c0".into(),
             width: 1920,
             height: 1080,
         },
         CameraSpec {
             offset: 0,
+            offset_ms: 0,
             name: "c1".into(),
             width: 1280,
             height: 720,
         },
         CameraSpec {
             offset: 0,
+            offset_ms: 0,
             name: "c2".into(),
             width: 640,
             height: 480,
@@ -324,6 +327,7 @@ pub fn batch(camera: usize, frame: u64, n: usize) -> pb::Batch {
         camera: CAMERAS[camera].into(),
         frame_id: frame,
         detections: dets(camera, frame, n),
+        time: None,
     }
 }
 

@@ -266,6 +266,7 @@ mod tests {
     fn restrict_drops_unkept_boxes_and_keeps_their_labels_aligned() {
         let cam = |name: &str| CameraSpec {
             offset: 0,
+            offset_ms: 0,
             name: name.into(),
             width: 100,
             height: 100,

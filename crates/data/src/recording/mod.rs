@@ -203,6 +203,7 @@ impl Recording {
                         camera: cam.name.clone(),
                         // The camera's own id: the frame's plus its clock offset.
                         frame_id: f.frame_id.saturating_add_signed(cam.offset),
+                        time: None,
                         detections: dets.clone(),
                     }
                 })

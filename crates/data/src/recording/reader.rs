@@ -4,6 +4,7 @@ use std::fs::File;
 use std::io::{BufRead, BufReader, Read};
 use std::path::Path;
 
+use crossview_core::capture::{CameraPhase, CaptureTime, Ticks};
 use crossview_core::{Batch, CameraSpec, Detection, SceneSpec};
 use crossview_core::{Error, Result};
 
@@ -78,6 +79,9 @@ pub struct RecordingReader<R> {
     not_json: bool,
     scene: SceneSpec,
     fps: Option<f64>,
+    /// Per camera, its clock offset for capture times (declared, or followed from its times
+    /// as the server follows it: [`CameraPhase`]).
+    phases: Vec<CameraPhase>,
     pub(super) appearance: AppearanceLen,
     /// Per frame id, a bitset of the cameras that reported it (duplicate detection);
     /// `None` when the check is switched off.
@@ -134,6 +138,7 @@ impl<R: BufRead> RecordingReader<R> {
                 cameras: Vec::new(),
             },
             fps: None,
+            phases: Vec::new(),
             appearance: AppearanceLen::default(),
             seen: Some(HashMap::new()),
             done: false,
@@ -166,6 +171,12 @@ impl<R: BufRead> RecordingReader<R> {
             crossview_core::types::check_fps(fps)
                 .map_err(|m| this.format_err(this.line_no, format!("invalid scene header: {m}")))?;
         }
+        this.phases = header
+            .scene
+            .cameras
+            .iter()
+            .map(|c| CameraPhase::new(c.offset_ms))
+            .collect();
         this.scene = header.scene;
         this.fps = header.fps;
         Ok(Start::Reader(Box::new(this)))
@@ -270,6 +281,11 @@ impl<R: BufRead> RecordingReader<R> {
                 ),
             )
         })?;
+        if batch.frame_id == 0
+            && let Some(time) = batch.time
+        {
+            batch.frame_id = self.tick_of(cam, time)?;
+        }
         let words = self.scene.cameras.len().div_ceil(64);
         let first_report = self.seen.as_mut().is_none_or(|seen| {
             let bits = seen
@@ -315,6 +331,38 @@ impl<R: BufRead> RecordingReader<R> {
         }
         batch.detections = kept;
         Ok(batch)
+    }
+}
+
+impl<R: BufRead> RecordingReader<R> {
+    /// The camera's own frame id of a batch that gives only its capture time: the tick of
+    /// the header's `fps` nearest the time less the camera's clock offset in ms, declared
+    /// (`offset_ms`) or followed from its times as the server follows it
+    /// ([`crossview_core::capture::CameraPhase`]); its whole-frame `offset` is applied when
+    /// frames are assembled, as for any batch.
+    fn tick_of(&mut self, cam: usize, time: CaptureTime) -> Result<u64> {
+        let camera = &self.scene.cameras[cam];
+        let Some(ticks) = self.fps.and_then(|f| Ticks::new(f).ok()) else {
+            return Err(self.format_err(
+                self.line_no,
+                format!(
+                    "camera '{}' gives a capture time and no frame_id: the header must declare \
+                     the frame rate (\"fps\") its times are grouped at",
+                    camera.name
+                ),
+            ));
+        };
+        let Some(placed) = self.phases[cam].place(&ticks, time) else {
+            return Err(self.format_err(
+                self.line_no,
+                format!(
+                    "camera '{}' time {time} less its clock offset is before 1970",
+                    camera.name
+                ),
+            ));
+        };
+        self.phases[cam].accept(&placed);
+        Ok(placed.tick)
     }
 }
 

@@ -98,6 +98,7 @@ impl<W: Write> RecordingWriter<W> {
                 self.write_json(&BatchLine {
                     camera: &camera,
                     frame_id,
+                    time: None,
                     detections: dets,
                 })?;
             }

@@ -75,6 +75,7 @@ impl CameraConfig {
         Camera::from_pose(
             CameraSpec {
                 offset: 0,
+                offset_ms: 0,
                 name: self.name.clone(),
                 width: self.width,
                 height: self.height,

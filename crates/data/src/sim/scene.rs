@@ -169,6 +169,7 @@ impl SceneConfig {
                 .iter()
                 .map(|c| crossview_core::CameraSpec {
                     offset: 0,
+                    offset_ms: 0,
                     name: c.name.clone(),
                     width: c.width,
                     height: c.height,

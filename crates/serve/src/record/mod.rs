@@ -45,6 +45,7 @@ use std::sync::mpsc::Sender;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use crossview_core::capture::CaptureTime;
 use crossview_core::{Detection, SceneSpec};
 
 use crate::error::{Error, Result};
@@ -116,6 +117,8 @@ enum Msg {
         camera_index: usize,
         offset: i64,
         frame_id: u64,
+        /// Its capture time, when it came with one.
+        time: Option<CaptureTime>,
         detections: Vec<Detection>,
         cost: usize,
     },
@@ -154,10 +157,11 @@ impl Recorder {
     pub(crate) fn start(
         config: RecordConfig,
         scenes: &[SceneSpec],
+        rates: &[Option<f64>],
         metrics: Metrics,
     ) -> Result<Arc<Recorder>> {
         config.validate()?;
-        let writer = Writer::open(config.clone(), scenes, metrics.clone())?;
+        let writer = Writer::open(config.clone(), scenes, rates, metrics.clone())?;
         let (tx, rx) = std::sync::mpsc::channel();
         let queued = Arc::new(AtomicUsize::new(0));
         let q = queued.clone();
@@ -217,12 +221,15 @@ impl SceneRecorder {
     /// Queues one accepted batch of camera number `camera_index`, grouped by clock offset
     /// `offset`, for the writer; never blocks. Call it where the batch is accepted, under the
     /// scene's intake lock, so batches are written in acceptance order. A batch the queue has
-    /// no room for is counted as dropped.
+    /// no room for is counted as dropped. `frame_id` is the camera's own id as the scene placed
+    /// the batch (a timestamped batch's tick, so a reader groups it as the server did), `time`
+    /// its capture time.
     pub(crate) fn record(
         &self,
         camera_index: usize,
         offset: i64,
         frame_id: u64,
+        time: Option<CaptureTime>,
         detections: Vec<Detection>,
     ) {
         let r = &*self.recorder;
@@ -243,6 +250,7 @@ impl SceneRecorder {
             camera_index,
             offset,
             frame_id,
+            time,
             detections,
             cost,
         };

@@ -13,6 +13,7 @@ use std::time::{Duration, Instant};
 use super::{Msg, RecordConfig, WRITE_CHUNK};
 use crate::error::{Error, Result};
 use crate::metrics::Metrics;
+use crossview_core::capture::CaptureTime;
 use crossview_core::types::{BatchLine, HeaderLine};
 use crossview_core::{Detection, SceneSpec};
 
@@ -59,6 +60,8 @@ struct SceneState {
     dir: PathBuf,
     /// The scene as the current file's header declares it (clock offsets as applied).
     spec: SceneSpec,
+    /// The scene's frame rate (its headers declare it: a reader groups capture times by it).
+    fps: Option<f64>,
     header: Vec<u8>,
     open: Option<OpenFile>,
     last_error_log: Option<Instant>,
@@ -78,14 +81,11 @@ pub(super) struct Writer {
     last_reconcile: Instant,
 }
 
-/// A recording's first line for `spec`, newline included. The server does not know the
-/// cameras' frame rate, so the header declares none.
-fn header_line(spec: &SceneSpec) -> Result<Vec<u8>> {
-    let mut header = serde_json::to_vec(&HeaderLine {
-        scene: spec,
-        fps: None,
-    })
-    .map_err(|e| Error::internal_from("cannot serialize the scene header", e))?;
+/// A recording's first line for `spec` at `fps` (the scene's declared rate, if any),
+/// newline included.
+fn header_line(spec: &SceneSpec, fps: Option<f64>) -> Result<Vec<u8>> {
+    let mut header = serde_json::to_vec(&HeaderLine { scene: spec, fps })
+        .map_err(|e| Error::internal_from("cannot serialize the scene header", e))?;
     header.push(b'\n');
     Ok(header)
 }
@@ -143,12 +143,14 @@ impl Writer {
     pub(super) fn open(
         config: RecordConfig,
         scenes: &[SceneSpec],
+        rates: &[Option<f64>],
         metrics: Metrics,
     ) -> Result<Writer> {
         let dir = &config.dir;
         std::fs::create_dir_all(dir).map_err(|e| io_err(dir, e))?;
         let mut states = Vec::new();
-        for spec in scenes {
+        for (k, spec) in scenes.iter().enumerate() {
+            let fps = rates.get(k).copied().flatten();
             if spec.name.chars().all(|c| c == '.') {
                 return Err(Error::invalid(
                     "--record",
@@ -161,7 +163,8 @@ impl Writer {
                 name: spec.name.clone(),
                 dir: sdir,
                 spec: spec.clone(),
-                header: header_line(spec)?,
+                fps,
+                header: header_line(spec, fps)?,
                 open: None,
                 last_error_log: None,
             });
@@ -239,11 +242,12 @@ impl Writer {
                     camera_index,
                     offset,
                     frame_id,
+                    time,
                     detections,
                     cost,
                 } => {
                     self.follow_offset(scene, camera_index, offset);
-                    self.write(scene, camera_index, frame_id, &detections);
+                    self.write(scene, camera_index, frame_id, time, &detections);
                     queued.fetch_sub(cost, Ordering::AcqRel);
                 }
                 Msg::Stop => break,
@@ -268,7 +272,7 @@ impl Writer {
         tracing::info!(scene = %st.name, camera = %c.name, from = c.offset, to = offset,
             "recording: a camera's clock offset changed; starting a new file");
         c.offset = offset;
-        match header_line(&st.spec) {
+        match header_line(&st.spec, st.fps) {
             Ok(h) => st.header = h,
             Err(e) => tracing::error!(error = %e, "cannot serialize the scene header"),
         }
@@ -277,13 +281,21 @@ impl Writer {
 
     /// Writes one batch line of scene `s`'s camera number `cam` (rotating and making room
     /// first).
-    fn write(&mut self, s: usize, cam: usize, frame_id: u64, detections: &[Detection]) {
+    fn write(
+        &mut self,
+        s: usize,
+        cam: usize,
+        frame_id: u64,
+        time: Option<CaptureTime>,
+        detections: &[Detection],
+    ) {
         self.line.clear();
         let written = match self.scenes[s].spec.cameras.get(cam) {
             Some(c) => {
                 let batch = BatchLine {
                     camera: &c.name,
                     frame_id,
+                    time,
                     detections,
                 };
                 serde_json::to_writer(&mut self.line, &batch).map_err(std::io::Error::other)

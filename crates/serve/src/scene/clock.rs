@@ -395,6 +395,10 @@ fn describe(spec: &SceneSpec, found: &OffsetEstimate, frames: usize, as_of: u64)
                 offset_frames: c.refined.map(|r| r / step as f32),
                 offset_ids: c.frames,
                 confidence: c.confidence,
+                // Capture times: filled by the scene ([`super::timing::Timing::fill`]).
+                offset_ms: None,
+                drift_ms_per_min: None,
+                jitter_ms: None,
             })
             .collect(),
     }

@@ -26,12 +26,13 @@
 //! entirely outside it are refused. The scene's appearance length is fixed by the first
 //! *accepted* batch carrying appearance vectors.
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 use tokio::sync::{Notify, broadcast, oneshot};
 
 use crossview_api::types::{ClockEstimate, FitEstimate, SceneDescription};
+use crossview_core::capture::{CaptureTime, Ticks};
 use crossview_core::tracking::{Tracker, TrackerConfig};
 use crossview_core::{Detection, Encoder, SceneSpec};
 
@@ -48,6 +49,7 @@ mod pool;
 mod priority;
 mod published;
 mod timebase;
+mod timing;
 mod unary;
 mod validate;
 mod worker;
@@ -77,10 +79,18 @@ pub struct SceneOptions {
     pub tracker: Option<TrackerConfig>,
     /// The inference pool the scene's work runs on (shared by the server's scenes).
     pub(crate) pool: Arc<Pool>,
+    /// The scene's frame rate (`@10fps`, a recording header's `fps`, the model's training
+    /// rate), which capture times need ([`timing`]); `None`: it takes frame ids only.
+    pub fps: Option<f64>,
+    /// How far a capture time may fall from its tick (`--time-tolerance`; `None`: half a
+    /// period).
+    pub time_tolerance: Option<Duration>,
 }
 
 struct Intake {
     sync: Synchronizer,
+    /// The scene's clock and its cameras', for capture times.
+    timing: timing::Timing,
     /// The clock sync timeouts run on: wall time, or the stream time of a Kafka partition.
     timebase: timebase::Timebase,
 }
@@ -119,6 +129,10 @@ pub struct Scene {
     fit: Arc<Mutex<Option<FitEstimate>>>,
     /// Each camera's clock offset as applied now (declared, or changed by `--auto-align`).
     offsets: clock::Offsets,
+    /// The scene's clock once it is fed capture times (results then carry their tick time).
+    timed: Arc<OnceLock<Ticks>>,
+    /// The scene's clock, if it declared a rate.
+    ticks: Option<Ticks>,
 }
 
 impl std::fmt::Debug for Scene {
@@ -149,6 +163,8 @@ impl Scene {
             limits,
             tracker,
             pool,
+            fps,
+            time_tolerance,
         } = options;
         let n = spec.cameras.len();
         if n == 0 || n > limits.max_cameras {
@@ -175,6 +191,7 @@ impl Scene {
         let clock = Arc::new(Mutex::new(None));
         let fit = Arc::new(Mutex::new(None));
         let fence = fit::fence(n);
+        let timed = Arc::new(OnceLock::new());
         let offsets: clock::Offsets = spec
             .cameras
             .iter()
@@ -202,13 +219,17 @@ impl Scene {
             ),
             fenced: fence,
             fenced_now: Vec::new(),
+            timed: timed.clone(),
         };
         let lane = pool.lane(worker);
+        let timing = timing::Timing::new(&spec, fps, time_tolerance);
+        let ticks = timing.ticks();
         Ok(Arc::new(Scene {
             intake: Mutex::new(Intake {
                 sync: Synchronizer::new(n, sync_timeout, max_pending)
                     .with_window(limits.frame_window),
                 timebase: timebase::Timebase::default(),
+                timing,
             }),
             spec,
             serving,
@@ -229,6 +250,8 @@ impl Scene {
             clock,
             fit,
             offsets,
+            timed,
+            ticks,
         }))
     }
 
@@ -282,20 +305,32 @@ impl Scene {
             model_version: serving.map(|i| i.version),
             appearance_length: (app > 0).then_some(app),
             sync_timeout_ms: self.sync_timeout.as_millis() as u64,
-            clock: lock(&self.clock).clone(),
+            clock: self.clock_estimate(),
             fit: lock(&self.fit).clone(),
         }
     }
 
-    /// Accepts one camera batch into the synchronizer (see the module docs). Late, duplicate
-    /// and out-of-range batches are rejected and counted.
-    pub fn push(&self, camera: &str, frame_id: u64, mut detections: Vec<Detection>) -> Result<()> {
+    /// Accepts one camera batch into the synchronizer (see the module docs) and returns the
+    /// camera's own frame id it was placed at (`frame_id`, or its capture time's tick). Late,
+    /// duplicate and out-of-range batches are rejected and counted.
+    pub fn push(
+        &self,
+        camera: &str,
+        frame_id: u64,
+        time: Option<CaptureTime>,
+        mut detections: Vec<Detection>,
+    ) -> Result<u64> {
         let cam = self.spec.camera_index(camera)?;
         let app_len = self.validate("detections", cam, &mut detections)?;
         let n_boxes = detections.len();
         // The recorder's copy, taken before the lock (the synchronizer takes the original).
         let recorded = self.recorder.as_ref().map(|_| detections.clone());
         let mut intake = lock(&self.intake);
+        // The camera's own frame id: the one given, or its capture time's tick ([`timing`]).
+        let (frame_id, placed) =
+            intake
+                .timing
+                .place(self.name(), &self.spec.cameras[cam], cam, frame_id, time)?;
         // The frame the batch belongs to: its id less the camera's clock offset.
         let offset = self.offsets[cam].load(Ordering::Acquire);
         let frame = self.frame_of(cam, frame_id, offset)?;
@@ -330,16 +365,35 @@ impl Scene {
                 self.appearance_len
                     .compare_exchange(0, n, Ordering::Relaxed, Ordering::Relaxed);
         }
+        intake.timing.accepted(cam, placed);
+        if intake.timing.timed()
+            && let Some(t) = intake.timing.ticks()
+        {
+            let _ = self.timed.set(t);
+        }
         self.metrics.batch(self.name());
         // Accepted: recorded exactly once, under the lock, so in acceptance order (never blocks).
         if let (Some(r), Some(dets)) = (&self.recorder, recorded) {
-            r.record(cam, offset, frame_id, dets);
+            r.record(cam, offset, frame_id, time, dets);
         }
         self.enqueue(&mut intake, emitted, PartialCause::Timeout);
         drop(intake);
         // The earliest deadline may have changed.
         self.wake.notify_one();
-        Ok(())
+        Ok(frame_id)
+    }
+
+    /// The live clock estimate; for a scene fed capture times, with each camera's offset in
+    /// milliseconds, drift and jitter.
+    fn clock_estimate(&self) -> Option<ClockEstimate> {
+        let mut estimate = lock(&self.clock).clone()?;
+        let applied: Vec<i64> = self
+            .offsets
+            .iter()
+            .map(|o| o.load(Ordering::Acquire))
+            .collect();
+        lock(&self.intake).timing.fill(&mut estimate, &applied);
+        Some(estimate)
     }
 
     /// The cameras with the clock offsets applied now.
@@ -456,6 +510,7 @@ impl Scene {
     pub fn restart(&self, last_emitted: Option<u64>) -> usize {
         let mut intake = lock(&self.intake);
         let n = intake.sync.restart(last_emitted);
+        intake.timing.restart();
         intake.timebase = timebase::Timebase::Wall;
         self.metrics.pending(self.name(), 0);
         n

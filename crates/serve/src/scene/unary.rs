@@ -6,6 +6,7 @@ use std::time::Instant;
 use tokio::sync::oneshot;
 
 use crossview_api::types::FrameResult;
+use crossview_core::capture::CaptureTime;
 use crossview_core::{Detection, Frame};
 
 use super::worker::Job;
@@ -14,12 +15,22 @@ use crate::error::{Error, Result};
 
 impl Scene {
     /// Associates one already synchronized frame (unary call); bypasses the synchronizer.
+    /// With `time`, the frame's id is the time's tick on the scene's clock (and a `frame_id`
+    /// given too must be that tick); the result carries the tick's time.
     pub async fn associate(
         &self,
         frame_id: u64,
+        time: Option<CaptureTime>,
         views: Vec<(String, Vec<Detection>)>,
     ) -> Result<FrameResult> {
         let started = Instant::now();
+        let (frame_id, tick_time) = match time {
+            None => (frame_id, None),
+            Some(t) => {
+                let tick = self.tick_of_request(frame_id, t)?;
+                (tick, self.ticks.map(|k| k.time_of(tick)))
+            }
+        };
         if lock(&self.serving).is_none() {
             return Err(Error::NoModel(self.spec.name.clone()));
         }
@@ -67,7 +78,40 @@ impl Scene {
             self.queued.fetch_sub(1, Ordering::AcqRel);
             return Err(Error::Unavailable("server is shutting down".into()));
         }
-        rx.await
-            .map_err(|_| Error::Unavailable("encoder worker stopped".into()))?
+        let mut r = rx
+            .await
+            .map_err(|_| Error::Unavailable("encoder worker stopped".into()))??;
+        r.time = tick_time.or(r.time);
+        Ok(r)
+    }
+
+    /// The tick of a unary request's capture time `t` (no camera offsets: the frame is already
+    /// synchronized); a nonzero `frame_id` must be that tick.
+    fn tick_of_request(&self, frame_id: u64, t: CaptureTime) -> Result<u64> {
+        let scene = self.name();
+        let ticks = self.ticks.ok_or_else(|| {
+            Error::invalid(
+                "time",
+                format!(
+                    "scene '{scene}' has no frame rate: declare it (--scene \
+                     {scene}=CAMERA:WxH,...@10fps) to send capture times"
+                ),
+            )
+        })?;
+        let tick = ticks
+            .nearest(t.unix_nanos() as f64)
+            .map(|n| n.tick)
+            .ok_or_else(|| Error::invalid("time", format!("time {t} is out of range")))?;
+        if frame_id != 0 && frame_id != tick {
+            return Err(Error::invalid(
+                "frame_id",
+                format!(
+                    "frame_id {frame_id} disagrees with time {t}, whose tick is {tick} ({} \
+                     frames/s)",
+                    ticks.fps()
+                ),
+            ));
+        }
+        Ok(tick)
     }
 }

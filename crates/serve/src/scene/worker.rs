@@ -10,7 +10,7 @@
 //! cameras alone has no model: its frames are published unassociated (`no_model`) until one
 //! arrives.
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 use tokio::sync::{broadcast, oneshot};
@@ -18,6 +18,7 @@ use tokio::sync::{broadcast, oneshot};
 use crossview_api::convert::{frame_boxes, identity_out};
 use crossview_api::types::{FrameResult, FrameWithBoxes, IdentityOut, ResultStatus};
 use crossview_core::association::{embed_frame, frame_identities_fenced};
+use crossview_core::capture::Ticks;
 use crossview_core::identity::Identity;
 use crossview_core::tracking::Tracker;
 use crossview_core::{Encoder, Frame, FrameEmbeddings, SceneSpec};
@@ -81,6 +82,8 @@ pub(super) struct Worker {
     pub(super) fenced: super::fit::Fence,
     /// The cameras fenced when the frame being served was associated (what its result says).
     pub(super) fenced_now: Vec<bool>,
+    /// The scene's clock once it is fed capture times: results carry their tick time.
+    pub(super) timed: Arc<OnceLock<Ticks>>,
 }
 
 impl Worker {
@@ -303,6 +306,7 @@ impl Worker {
         FrameResult {
             scene: spec.name.clone(),
             frame_id: frame.frame_id,
+            time: self.timed.get().map(|t| t.time_of(frame.frame_id)),
             complete: frame.is_complete(),
             missing_cameras: frame
                 .views

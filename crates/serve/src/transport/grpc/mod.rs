@@ -103,10 +103,11 @@ fn push_one(svc: &Service, b: crate::error::Result<pb::Batch>) -> pb::BatchAck {
         .inspect_err(|e| svc.metrics().error(e))
         .and_then(|(scene, batch)| svc.push(&scene, batch));
     match outcome {
-        Ok(_) => pb::BatchAck {
+        // The frame id the batch was placed at (a timestamped batch's tick).
+        Ok(ack) => pb::BatchAck {
             scene,
             camera,
-            frame_id,
+            frame_id: ack.frame_id,
             ..Default::default()
         },
         Err(e) => refusal(scene, camera, frame_id, e),

@@ -118,6 +118,7 @@ mod tests {
         let r = crossview_api::types::FrameResult {
             scene: "lab".into(),
             frame_id: 7,
+            time: None,
             complete: false,
             missing_cameras: vec!["c1".into()],
             fenced_cameras: vec![],
@@ -163,6 +164,7 @@ mod tests {
         let batch = Batch {
             camera: "c0".into(),
             frame_id: 7,
+            time: None,
             detections: vec![],
         };
         let proto = ValueFormat::Protobuf;

@@ -1,0 +1,235 @@
+//! Capture times: which frame a timestamped batch belongs to ([`crossview_core::capture`]).
+//!
+//! A scene is fed either frame ids or capture times, never both: its first accepted batch
+//! decides ([`Stamps`]), since the two number frames differently (a timed scene's frame id is
+//! its tick: `round(time · fps)`, ticks counted from the Unix epoch). A timestamped batch of
+//! camera `c` goes to the camera's own tick `round((time − phase_c) · fps)`, less the camera's
+//! whole-frame offset (`@±N`, `--auto-align`) like any frame id, where `phase_c` is the
+//! camera's sub-frame clock offset:
+//! - declared (`CAMERA:WxH@+120ms`): fixed;
+//! - otherwise followed from the camera's own capture times ([`PhaseTracker`]): where within
+//!   the period its captures fall, so a camera whose captures sit near half a period from the
+//!   scene's ticks (a free-running camera, a clock a fraction of a frame off, a clock that
+//!   drifts) is not split between two frames by its jitter. The whole frames are the clock
+//!   watch's to find (geometry), the fraction the timestamps'.
+//!
+//! Refused, changing nothing: a time in a scene without a frame rate, a scene fed the other
+//! kind of stamp, a time further than the tolerance from its tick, a frame id given with a
+//! time that is not the time's tick, a time that goes backwards on its camera.
+use crossview_api::types::ClockEstimate;
+use crossview_core::capture::{CameraPhase, CaptureTime, Placement, Ticks};
+use crossview_core::{CameraSpec, SceneSpec};
+
+use crate::error::{Error, Result};
+
+/// How a scene's batches are stamped (fixed by its first accepted batch).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Stamps {
+    /// Nothing accepted yet.
+    Unknown,
+    /// Frame ids.
+    Ids,
+    /// Capture times.
+    Times,
+}
+
+/// One camera's clock, for capture times.
+#[derive(Debug, Clone)]
+struct CameraClock {
+    phase: CameraPhase,
+    /// The camera's own tick of its last accepted batch.
+    last_tick: Option<u64>,
+}
+
+/// A timestamped batch, placed: what [`Timing::accepted`] records once the synchronizer took it.
+pub(super) type Placed = Placement;
+
+/// The scene's clock and its cameras' (see the module docs). Lives under the intake lock.
+#[derive(Debug)]
+pub(super) struct Timing {
+    ticks: Option<Ticks>,
+    tolerance_ms: f64,
+    stamps: Stamps,
+    cameras: Vec<CameraClock>,
+}
+
+impl Timing {
+    /// The clock of `spec` at `fps` (none: the scene takes no capture times) with `tolerance`
+    /// (none: half a period).
+    pub(super) fn new(
+        spec: &SceneSpec,
+        fps: Option<f64>,
+        tolerance: Option<std::time::Duration>,
+    ) -> Self {
+        let ticks = fps.and_then(|f| Ticks::new(f).ok());
+        let half = ticks.map_or(0.0, |t| t.period_ns() / 2e6);
+        let tolerance_ms = tolerance.map_or(half, |d| d.as_secs_f64() * 1e3);
+        Timing {
+            ticks,
+            tolerance_ms,
+            stamps: Stamps::Unknown,
+            cameras: spec
+                .cameras
+                .iter()
+                .map(|c| CameraClock {
+                    phase: CameraPhase::new(c.offset_ms),
+                    last_tick: None,
+                })
+                .collect(),
+        }
+    }
+
+    /// The scene's clock, if it declared a rate.
+    pub(super) fn ticks(&self) -> Option<Ticks> {
+        self.ticks
+    }
+
+    /// Whether the scene is fed capture times.
+    pub(super) fn timed(&self) -> bool {
+        self.stamps == Stamps::Times
+    }
+
+    /// Camera `cam`'s own frame id of a batch stamped `frame_id` and `time`: `frame_id`, or the
+    /// time's tick (with what [`Self::accepted`] records), or why the batch is refused.
+    pub(super) fn place(
+        &self,
+        scene: &str,
+        camera: &CameraSpec,
+        cam: usize,
+        frame_id: u64,
+        time: Option<CaptureTime>,
+    ) -> Result<(u64, Option<Placed>)> {
+        let Some(time) = time else {
+            if self.stamps == Stamps::Times {
+                return Err(Error::invalid(
+                    "time",
+                    format!(
+                        "scene '{scene}' is fed capture times (its first batch had one): the \
+                         batch of camera '{}' has only a frame_id",
+                        camera.name
+                    ),
+                ));
+            }
+            return Ok((frame_id, None));
+        };
+        if self.stamps == Stamps::Ids {
+            return Err(Error::invalid(
+                "time",
+                format!(
+                    "scene '{scene}' is fed frame ids (its first batch had no time): send \
+                     frame_id only, or restart the scene to feed capture times"
+                ),
+            ));
+        }
+        let Some(ticks) = self.ticks else {
+            return Err(Error::invalid(
+                "time",
+                format!(
+                    "scene '{scene}' has no frame rate: declare it (--scene \
+                     {scene}=CAMERA:WxH,...@10fps, or a recording header's \"fps\") to send \
+                     capture times"
+                ),
+            ));
+        };
+        let clock = &self.cameras[cam];
+        let t = time.unix_nanos() as f64;
+        let period_ms = ticks.period_ns() / 1e6;
+        if frame_id != 0 {
+            let off_ms = (t - frame_id as f64 * ticks.period_ns()) / 1e6;
+            if !(off_ms.abs() <= self.tolerance_ms) {
+                return Err(Error::invalid(
+                    "frame_id",
+                    format!(
+                        "frame_id {frame_id} of camera '{}' disagrees with its time {time} by \
+                         {off_ms:+.1} ms: tick {frame_id} is at {} ({} frames/s, tolerance \
+                         {:.1} ms)",
+                        camera.name,
+                        ticks.time_of(frame_id),
+                        ticks.fps(),
+                        self.tolerance_ms
+                    ),
+                ));
+            }
+        }
+        let Some(near) = clock.phase.place(&ticks, time) else {
+            return Err(Error::invalid(
+                "time",
+                format!(
+                    "time {time} of camera '{}' less its clock offset {:.1} ms is before 1970",
+                    camera.name,
+                    clock.phase.offset_ms()
+                ),
+            ));
+        };
+        // A camera's first capture places its phase (unless declared): no tolerance yet.
+        if clock.phase.known() && near.residual_ms.abs() > self.tolerance_ms {
+            return Err(Error::invalid(
+                "time",
+                format!(
+                    "time {time} of camera '{}' is {:+.1} ms from its nearest tick (frame {}, \
+                     period {period_ms:.1} ms) after its clock offset {:.1} ms; the scene's \
+                     tolerance is {:.1} ms (--time-tolerance)",
+                    camera.name,
+                    near.residual_ms,
+                    near.tick,
+                    clock.phase.offset_ms(),
+                    self.tolerance_ms
+                ),
+            ));
+        }
+        if let Some(last) = clock.last_tick
+            && near.tick < last
+        {
+            return Err(Error::invalid(
+                "time",
+                format!(
+                    "time {time} of camera '{}' goes backwards: it falls on tick {} but the \
+                     camera already sent tick {last} ({})",
+                    camera.name,
+                    near.tick,
+                    ticks.time_of(last)
+                ),
+            ));
+        }
+        Ok((near.tick, Some(near)))
+    }
+
+    /// Records an accepted batch of camera `cam` (`placed`: timestamped): fixes the scene's
+    /// stamps and follows the camera's phase.
+    pub(super) fn accepted(&mut self, cam: usize, placed: Option<Placed>) {
+        let Some(p) = placed else {
+            self.stamps = Stamps::Ids;
+            return;
+        };
+        self.stamps = Stamps::Times;
+        let clock = &mut self.cameras[cam];
+        clock.last_tick = Some(p.tick);
+        clock.phase.accept(&p);
+    }
+
+    /// Forgets where each camera's ticks were (the scene's frames restarted), keeping the
+    /// phases.
+    pub(super) fn restart(&mut self) {
+        self.cameras.iter_mut().for_each(|c| c.last_tick = None);
+    }
+
+    /// Adds each camera's clock in milliseconds to the watch's `estimate`, for a scene fed
+    /// capture times (`applied`: the whole-frame offsets applied now): the offset is the whole
+    /// frames applied and found by the watch, times the period, plus the camera's phase; with
+    /// its drift and jitter. A camera with too few captures yet is left as it is.
+    pub(super) fn fill(&self, estimate: &mut ClockEstimate, applied: &[i64]) {
+        let (Some(ticks), true) = (self.ticks, self.timed()) else {
+            return;
+        };
+        let period_ms = ticks.period_ns() / 1e6;
+        for ((out, clock), &whole) in estimate.cameras.iter_mut().zip(&self.cameras).zip(applied) {
+            let Some(t) = clock.phase.timing() else {
+                continue;
+            };
+            let frames = whole.saturating_add(out.offset_ids.unwrap_or(0));
+            out.offset_ms = Some(frames as f64 * period_ms + t.phase_ms);
+            out.drift_ms_per_min = Some(t.drift_ms_per_min);
+            out.jitter_ms = Some(t.jitter_ms);
+        }
+    }
+}
