@@ -25,6 +25,11 @@ pub enum FrameIds {
     Fresh,
     /// As in the recording.
     Original,
+    /// Capture times instead: frame `k` of the run is stamped with tick `T + k` of `--rate`
+    /// (ticks count periods from the Unix epoch, `T` the tick after the run's start), its
+    /// frame id that tick too (the server checks that they agree). The scene must declare the
+    /// same rate (`crossview serve --scene NAME=...@Nfps`).
+    Times,
 }
 
 /// Replays a crossview recording against a running server at a fixed rate (open loop) or as
@@ -221,6 +226,13 @@ impl Args {
             anyhow::ensure!(
                 !self.soak,
                 "--soak drops and reconnects camera connections: gRPC or HTTP only"
+            );
+        }
+        if self.frame_ids == FrameIds::Times {
+            anyhow::ensure!(
+                self.rate > 0.0 && crossview_core::types::check_fps(self.rate).is_ok(),
+                "--frame-ids times needs a fixed --rate of at most {} frames/s (the scene's)",
+                crossview_core::types::MAX_FPS
             );
         }
         if self.soak {

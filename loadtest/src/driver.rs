@@ -173,7 +173,7 @@ pub async fn run(args: &Args) -> anyhow::Result<Report> {
     );
     let len = workload.frames.len() as u64;
     let span = workload.loop_span();
-    let base = frame_id_base(args.frame_ids);
+    let base = frame_id_base(args.frame_ids, args.rate);
     let t0 = Instant::now();
     let mut max_lag = Duration::ZERO;
     let mut k: u64 = 0;
@@ -211,14 +211,20 @@ pub async fn run(args: &Args) -> anyhow::Result<Report> {
             for (cam, batch) in &frame.batches {
                 let slot_idx = (si * ncam + cam) % nslots;
                 let mut batch = batch.clone();
-                batch.frame_id = match pass
-                    .checked_mul(span)
-                    .and_then(|o| o.checked_add(base))
-                    .and_then(|o| o.checked_add(frame.frame_id))
-                {
-                    Some(id) => id,
-                    None => anyhow::bail!("frame ids overflow u64 after {k} frames"),
+                batch.frame_id = match args.frame_ids {
+                    FrameIds::Times => base.saturating_add(k),
+                    _ => match pass
+                        .checked_mul(span)
+                        .and_then(|o| o.checked_add(base))
+                        .and_then(|o| o.checked_add(frame.frame_id))
+                    {
+                        Some(id) => id,
+                        None => anyhow::bail!("frame ids overflow u64 after {k} frames"),
+                    },
                 };
+                if args.frame_ids == FrameIds::Times {
+                    batch.time = Some(tick_time(batch.frame_id, args.rate)?);
+                }
                 let mut copies = 1;
                 if let Some(s) = soak.as_mut() {
                     match soak_decide(s, args, k, slot_idx, &mut slots, &tracker).await {
@@ -311,18 +317,25 @@ async fn server_metrics(args: &Args) -> Option<Vec<Sample>> {
     promtext::scrape(&args.target).await.ok()
 }
 
-/// The offset added to every frame id: 0 for `original`, else the current Unix time in ms
-/// times 1000, which grows faster than any run can use ids.
-fn frame_id_base(mode: FrameIds) -> u64 {
+/// The offset added to every frame id: 0 for `original`; for `fresh`, the current Unix time in
+/// ms times 1000, which grows faster than any run can use ids; for `times`, the tick of `rate`
+/// after now.
+fn frame_id_base(mode: FrameIds, rate: f64) -> u64 {
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap_or_default();
     match mode {
         FrameIds::Original => 0,
-        FrameIds::Fresh => {
-            let ms = std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map_or(0, |d| d.as_millis() as u64);
-            ms.saturating_mul(1000)
-        }
+        FrameIds::Fresh => (now.as_millis() as u64).saturating_mul(1000),
+        FrameIds::Times => (now.as_secs_f64() * rate).ceil() as u64,
     }
+}
+
+/// The time of tick `tick` at `rate` frames per second.
+fn tick_time(tick: u64, rate: f64) -> anyhow::Result<crossview_core::capture::CaptureTime> {
+    let ticks = crossview_core::capture::Ticks::new(rate)
+        .map_err(|e| anyhow::anyhow!("--frame-ids times needs --rate: {e}"))?;
+    Ok(ticks.time_of(tick))
 }
 
 /// Opens one result subscription per scene (Kafka: one reader of the output topic, and the

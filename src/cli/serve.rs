@@ -279,6 +279,11 @@ pub struct KafkaArgs {
     /// (`crossview.v1.FrameResult`; producer in the headers).
     #[arg(long, env = "CROSSVIEW_KAFKA_OUTPUT_FORMAT", default_value = "json")]
     pub kafka_output_format: ValueFormat,
+    /// Where a batch without a `time` takes its capture time from: `value` (nowhere: it is
+    /// grouped by its frame id) or `record` (the record's timestamp, ms; the scene must
+    /// declare its frame rate).
+    #[arg(long, env = "CROSSVIEW_KAFKA_TIMESTAMP", default_value = "value")]
+    pub kafka_timestamp: crossview_serve::TimestampSource,
 }
 
 impl KafkaArgs {
@@ -308,6 +313,7 @@ impl KafkaArgs {
             .filter(|i| !i.trim().is_empty());
         k.input_format = self.kafka_input_format;
         k.output_format = self.kafka_output_format;
+        k.timestamps = self.kafka_timestamp;
         let named = [
             ("security.protocol", &self.kafka_security_protocol),
             ("sasl.mechanism", &self.kafka_sasl_mechanism),

@@ -295,7 +295,7 @@ async fn recordings_keep_capture_times_and_read_back_as_served() {
         assert!(r.complete, "{r:?}");
     }
     server.shutdown().await.unwrap();
-    let files = crossview_data::recording_files(&[dir.clone()]).unwrap();
+    let files = crossview_data::recording_files(std::slice::from_ref(&dir)).unwrap();
     let text = std::fs::read_to_string(&files[0]).unwrap();
     let header: serde_json::Value = serde_json::from_str(text.lines().next().unwrap()).unwrap();
     assert_eq!(header["fps"], 10.0, "{header}");

@@ -19,6 +19,20 @@ use std::collections::VecDeque;
 use serde::de::{self, Deserializer, Visitor};
 use serde::{Deserialize, Serialize, Serializer};
 
+/// Highest frame rate a recording or a simulation may declare, in frames per second.
+pub const MAX_FPS: f64 = 1000.0;
+
+/// Checks a declared frame rate: finite, above 0 and at most [`MAX_FPS`]. The error says why.
+pub fn check_fps(fps: f64) -> std::result::Result<(), String> {
+    if fps.is_finite() && fps > 0.0 && fps <= MAX_FPS {
+        Ok(())
+    } else {
+        Err(format!(
+            "fps must be a frame rate in (0, {MAX_FPS}] frames per second, got {fps}"
+        ))
+    }
+}
+
 /// A capture time: nanoseconds since the Unix epoch, within `1970-01-01T00:00:00Z ..=
 /// 2262-04-11T23:47:16.854775807Z` (what a signed 64-bit count of nanoseconds holds).
 ///
@@ -149,9 +163,9 @@ pub struct Nearest {
 }
 
 impl Ticks {
-    /// The clock of a scene at `fps` frames per second (checked by [`crate::types::check_fps`]).
+    /// The clock of a scene at `fps` frames per second (checked by [`check_fps`]).
     pub fn new(fps: f64) -> Result<Self, String> {
-        crate::types::check_fps(fps)?;
+        check_fps(fps)?;
         Ok(Ticks {
             fps,
             period_ns: 1e9 / fps,

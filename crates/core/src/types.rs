@@ -283,19 +283,7 @@ pub struct HeaderLine<'a> {
     pub fps: Option<f64>,
 }
 
-/// Highest frame rate a recording or a simulation may declare, in frames per second.
-pub const MAX_FPS: f64 = 1000.0;
-
-/// Checks a declared frame rate: finite, above 0 and at most [`MAX_FPS`]. The error says why.
-pub fn check_fps(fps: f64) -> std::result::Result<(), String> {
-    if fps.is_finite() && fps > 0.0 && fps <= MAX_FPS {
-        Ok(())
-    } else {
-        Err(format!(
-            "fps must be a frame rate in (0, {MAX_FPS}] frames per second, got {fps}"
-        ))
-    }
-}
+pub use crate::capture::{MAX_FPS, check_fps};
 
 /// One batch line of a recording (SPEC §7): the JSON of a [`Batch`], borrowed for writing
 /// without cloning the detections.

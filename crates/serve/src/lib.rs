@@ -58,7 +58,7 @@ pub use registry::SceneInfo;
 pub use scene::Scene;
 pub use service::Service;
 pub use transport::http::routes::openapi_json;
-pub use transport::kafka::{GroupProtocol, KafkaConfig, ValueFormat};
+pub use transport::kafka::{GroupProtocol, KafkaConfig, TimestampSource, ValueFormat};
 
 use crossview_core::Encoder;
 

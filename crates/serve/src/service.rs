@@ -152,6 +152,14 @@ impl Service {
         })
     }
 
+    /// The frame `batch` of `scene` would be grouped into now (its frame id less its camera's
+    /// clock offset, or its capture time's tick), without pushing it; an error where
+    /// [`push`](Self::push) would refuse it for its camera or its stamps.
+    pub fn frame_of(&self, scene: &str, batch: &Batch) -> Result<u64> {
+        self.scene(scene)?
+            .frame_of_batch(&batch.camera, batch.frame_id, batch.time)
+    }
+
     /// Associates one already synchronized frame.
     pub async fn associate(&self, scene: &str, req: AssociateRequest) -> Result<FrameResult> {
         let s = self.scene(scene)?;

@@ -45,6 +45,7 @@ use crate::sync::{Rejection, Synchronizer};
 mod admission;
 mod clock;
 mod fit;
+mod placement;
 mod pool;
 mod priority;
 mod published;
@@ -167,22 +168,7 @@ impl Scene {
             time_tolerance,
         } = options;
         let n = spec.cameras.len();
-        if n == 0 || n > limits.max_cameras {
-            return Err(Error::invalid(
-                "cameras",
-                format!(
-                    "scene '{}' has {n} cameras; 1..={} are supported",
-                    spec.name, limits.max_cameras
-                ),
-            ));
-        }
-        let model = match model {
-            Some((info, encoder)) => {
-                crate::registry::check_fits(&spec, &info)?;
-                Some(Model { info, encoder })
-            }
-            None => None,
-        };
+        let model = checked_model(&spec, &limits, model)?;
         let serving = Arc::new(Mutex::new(model.as_ref().map(|m| m.info.clone())));
         let (results, _) = broadcast::channel(limits.subscriber_buffer.max(1));
         let queued = Arc::new(AtomicUsize::new(0));
@@ -383,44 +369,6 @@ impl Scene {
         Ok(frame_id)
     }
 
-    /// The live clock estimate; for a scene fed capture times, with each camera's offset in
-    /// milliseconds, drift and jitter.
-    fn clock_estimate(&self) -> Option<ClockEstimate> {
-        let mut estimate = lock(&self.clock).clone()?;
-        let applied: Vec<i64> = self
-            .offsets
-            .iter()
-            .map(|o| o.load(Ordering::Acquire))
-            .collect();
-        lock(&self.intake).timing.fill(&mut estimate, &applied);
-        Some(estimate)
-    }
-
-    /// The cameras with the clock offsets applied now.
-    pub fn cameras(&self) -> Vec<crossview_core::CameraSpec> {
-        let mut cameras = self.spec.cameras.clone();
-        for (c, o) in cameras.iter_mut().zip(self.offsets.iter()) {
-            c.offset = o.load(Ordering::Acquire);
-        }
-        cameras
-    }
-
-    /// The frame camera `cam`'s batch `frame_id` belongs to: `frame_id` less `offset`, the
-    /// camera's clock offset as read for this batch (its `@±N` in the scene declaration, or
-    /// what `--auto-align` set; the recorder is told the same value).
-    fn frame_of(&self, cam: usize, frame_id: u64, offset: i64) -> Result<u64> {
-        crossview_core::types::frame_less_offset(frame_id, offset).ok_or_else(|| {
-            Error::invalid(
-                "frame_id",
-                format!(
-                    "frame id {frame_id} of camera '{}' less its clock offset {offset} falls \
-                     outside 0..=2^64-1",
-                    self.spec.cameras[cam].name
-                ),
-            )
-        })
-    }
-
     /// The error for a batch the synchronizer refused, counted by rejection kind.
     fn rejected(&self, intake: &Intake, r: Rejection, camera: &str, frame_id: u64) -> Error {
         let (scene, camera) = (self.name().to_string(), camera.to_string());
@@ -575,6 +523,31 @@ impl Scene {
         self.lane.drain();
         lock(&self.results).take();
     }
+}
+
+/// The scene's model, once its cameras are checked: 1..=`max_cameras` of them, and the
+/// model's the same.
+fn checked_model(
+    spec: &SceneSpec,
+    limits: &Limits,
+    model: Option<(SceneInfo, Box<dyn Encoder>)>,
+) -> Result<Option<Model>> {
+    let n = spec.cameras.len();
+    if n == 0 || n > limits.max_cameras {
+        return Err(Error::invalid(
+            "cameras",
+            format!(
+                "scene '{}' has {n} cameras; 1..={} are supported",
+                spec.name, limits.max_cameras
+            ),
+        ));
+    }
+    model
+        .map(|(info, encoder)| {
+            crate::registry::check_fits(spec, &info)?;
+            Ok(Model { info, encoder })
+        })
+        .transpose()
 }
 
 /// Keeps one subscriber counted in the `crossview_subscribers` gauge while alive.

@@ -132,25 +132,8 @@ impl Timing {
             ));
         };
         let clock = &self.cameras[cam];
-        let t = time.unix_nanos() as f64;
         let period_ms = ticks.period_ns() / 1e6;
-        if frame_id != 0 {
-            let off_ms = (t - frame_id as f64 * ticks.period_ns()) / 1e6;
-            if !(off_ms.abs() <= self.tolerance_ms) {
-                return Err(Error::invalid(
-                    "frame_id",
-                    format!(
-                        "frame_id {frame_id} of camera '{}' disagrees with its time {time} by \
-                         {off_ms:+.1} ms: tick {frame_id} is at {} ({} frames/s, tolerance \
-                         {:.1} ms)",
-                        camera.name,
-                        ticks.time_of(frame_id),
-                        ticks.fps(),
-                        self.tolerance_ms
-                    ),
-                ));
-            }
-        }
+        self.check_agrees(&ticks, camera, frame_id, time)?;
         let Some(near) = clock.phase.place(&ticks, time) else {
             return Err(Error::invalid(
                 "time",
@@ -192,6 +175,36 @@ impl Timing {
             ));
         }
         Ok((near.tick, Some(near)))
+    }
+
+    /// A frame id given beside a capture time must be the time's tick on the camera's own
+    /// clock, within the tolerance.
+    fn check_agrees(
+        &self,
+        ticks: &Ticks,
+        camera: &CameraSpec,
+        frame_id: u64,
+        time: CaptureTime,
+    ) -> Result<()> {
+        let t = time.unix_nanos() as f64;
+        if frame_id != 0 {
+            let off_ms = (t - frame_id as f64 * ticks.period_ns()) / 1e6;
+            if off_ms.abs() > self.tolerance_ms {
+                return Err(Error::invalid(
+                    "frame_id",
+                    format!(
+                        "frame_id {frame_id} of camera '{}' disagrees with its time {time} by \
+                         {off_ms:+.1} ms: tick {frame_id} is at {} ({} frames/s, tolerance \
+                         {:.1} ms)",
+                        camera.name,
+                        ticks.time_of(frame_id),
+                        ticks.fps(),
+                        self.tolerance_ms
+                    ),
+                ));
+            }
+        }
+        Ok(())
     }
 
     /// Records an accepted batch of camera `cam` (`placed`: timestamped): fixes the scene's

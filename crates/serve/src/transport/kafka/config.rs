@@ -36,6 +36,35 @@ pub struct KafkaConfig {
     pub input_format: ValueFormat,
     /// How results are encoded.
     pub output_format: ValueFormat,
+    /// Where a batch without a capture time takes one from (`--kafka-timestamp`).
+    pub timestamps: TimestampSource,
+}
+
+/// Where a record's batch takes its capture time from (`--kafka-timestamp`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum TimestampSource {
+    /// From the value only (`time` in the batch); a batch without one is grouped by its
+    /// frame id.
+    #[default]
+    Value,
+    /// A batch without `time` takes its record's timestamp (milliseconds: the producer's
+    /// create time, e.g. a camera's capture time, or the broker's log-append time).
+    Record,
+}
+
+/// `value` or `record`, any case: the spelling of `--kafka-timestamp`.
+impl std::str::FromStr for TimestampSource {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s.to_ascii_lowercase().as_str() {
+            "value" => Ok(TimestampSource::Value),
+            "record" => Ok(TimestampSource::Record),
+            _ => {
+                let shown: String = s.chars().take(64).collect();
+                Err(format!("'{shown}' is not value or record"))
+            }
+        }
+    }
 }
 
 impl std::fmt::Debug for KafkaConfig {
@@ -81,6 +110,7 @@ impl KafkaConfig {
             max_in_flight: 256,
             input_format: ValueFormat::Json,
             output_format: ValueFormat::Json,
+            timestamps: TimestampSource::Value,
         }
     }
 

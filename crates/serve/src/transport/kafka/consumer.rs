@@ -7,7 +7,10 @@ use rdkafka::message::{Header, Message, OwnedHeaders};
 use rdkafka::producer::FutureRecord;
 use rdkafka::util::Timeout;
 
+use crossview_core::capture::CaptureTime;
+
 use super::codec::{content_type, decode};
+use super::config::TimestampSource;
 use super::{Kafka, ValueFormat, now_ms, wake};
 use crate::error::{Error, Result};
 use crate::locks::lock;
@@ -25,6 +28,8 @@ struct Record<'a> {
     offset: i64,
     /// Read here before (below the highest offset consumed before the last revocation).
     redelivered: bool,
+    /// The record's timestamp, ms since the Unix epoch (create or log-append time).
+    stamp_ms: Option<i64>,
 }
 
 /// What became of one input record.
@@ -73,6 +78,7 @@ impl Kafka {
                 partition,
                 offset,
                 redelivered,
+                stamp_ms: stamp,
             };
             let format = content_type(&msg).unwrap_or(Ok(self.config.input_format));
             if let Handled::Stop = self.handle(&record, format).await {
@@ -114,7 +120,7 @@ impl Kafka {
 
     async fn handle(&self, r: &Record<'_>, format: Result<ValueFormat>) -> Handled {
         let (partition, offset) = (r.partition, r.offset);
-        let (scene, batch) = match format.and_then(|f| decode(r.key, r.payload, f)) {
+        let (scene, mut batch) = match format.and_then(|f| decode(r.key, r.payload, f)) {
             Ok(v) => v,
             Err(e) => {
                 if r.redelivered {
@@ -129,8 +135,19 @@ impl Kafka {
                 return Handled::Next;
             }
         };
+        if self.config.timestamps == TimestampSource::Record && batch.time.is_none() {
+            batch.time = r
+                .stamp_ms
+                .and_then(|ms| ms.checked_mul(1_000_000))
+                .and_then(|ns| CaptureTime::from_unix_nanos(ns).ok());
+        }
         self.enter_scene(&scene, partition);
-        let frame_id = batch.frame_id;
+        // Held under the frame it will be published as (after the camera's clock offset, or
+        // its capture time's tick), so that frame's result closes it.
+        let frame_id = self
+            .service
+            .frame_of(&scene, &batch)
+            .unwrap_or(batch.frame_id);
         let created = lock(&self.offsets).hold(&scene, frame_id, partition, offset);
         loop {
             match self.service.push(&scene, batch.clone()) {

@@ -42,7 +42,9 @@ mod offsets;
 mod producer;
 mod stream_time;
 
-pub use config::{CLASSIC_DEFAULTS, CONSUMER_DEFAULTS, GroupProtocol, KafkaConfig, ValueFormat};
+pub use config::{
+    CLASSIC_DEFAULTS, CONSUMER_DEFAULTS, GroupProtocol, KafkaConfig, TimestampSource, ValueFormat,
+};
 use context::{Context, commit_list};
 use offsets::Ownership;
 
