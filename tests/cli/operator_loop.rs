@@ -105,7 +105,9 @@ fn to_pb(rec: &Recording, shift: u64) -> Vec<pb::Batch> {
 async fn record_train_and_swap_in_a_model_for_a_new_camera_setup() {
     let bin = env!("CARGO_BIN_EXE_crossview");
     let tmp = tempfile::tempdir().unwrap();
-    let first = simulate(bin, &tmp.path().join("first.jsonl"), 300, 5);
+    // 150 s at 10 frames/s: the recorded headers declare the rate, and training keeps one
+    // frame in 5 (about 2 frames/s, docs/method.md §7): 300 frames.
+    let first = simulate(bin, &tmp.path().join("first.jsonl"), 1500, 5);
     let later = simulate(bin, &tmp.path().join("later.jsonl"), 120, 9);
     let model = tmp.path().join("square4.onnx");
     let record = tmp.path().join("rec");

@@ -25,9 +25,12 @@ FILES = ("crossview_pb2.py", "crossview_pb2.pyi", "crossview_pb2_grpc.py")
 def generate(out_src: Path) -> list[Path]:
     """Writes the stubs under ``out_src/crossview_client/_pb/`` and returns their paths."""
     (out_src / VIRTUAL).mkdir(parents=True, exist_ok=True)
+    # The well-known types (google/protobuf/timestamp.proto) ship with grpcio-tools.
+    well_known = Path(protoc.__file__).resolve().parent / "_proto"
     rc = protoc.main([
         "grpc_tools.protoc",
         f"-I{VIRTUAL}={PROTO_DIR}",
+        f"-I{well_known}",
         f"--python_out={out_src}",
         f"--pyi_out={out_src}",
         f"--grpc_python_out={out_src}",

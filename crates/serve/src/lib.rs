@@ -112,7 +112,7 @@ impl Server {
         }
         let mut specs: Vec<crossview_core::SceneSpec> = Vec::new();
         // Each scene's frame rate: declared, else the model's training rate.
-        let mut rates: Vec<Option<f64>> = Vec::new();
+        let mut rates: Vec<record::SceneRate> = Vec::new();
         for d in &config.scenes {
             if specs.iter().any(|s| s.name == d.spec.name) {
                 return Err(Error::invalid(
@@ -121,15 +121,20 @@ impl Server {
                 ));
             }
             specs.push(d.spec.clone());
-            rates.push(
-                d.fps
+            rates.push(record::SceneRate {
+                declared: d.fps,
+                clock: d
+                    .fps
                     .or_else(|| models.get(&d.spec.name).and_then(|m| m.0.fps)),
-            );
+            });
         }
         for (name, (info, _)) in &models {
             if !specs.iter().any(|s| &s.name == name) {
                 specs.push(info.spec.clone());
-                rates.push(info.fps);
+                rates.push(record::SceneRate {
+                    declared: None,
+                    clock: info.fps,
+                });
             }
         }
         let recorder = match &config.record {
@@ -148,7 +153,7 @@ impl Server {
         let pool = Arc::new(scene::Pool::start(threads)?);
         tracing::info!(threads, "inference pool started");
         let mut started = Vec::new();
-        for (k, (spec, fps)) in specs.into_iter().zip(rates).enumerate() {
+        for (k, (spec, rate)) in specs.into_iter().zip(rates).enumerate() {
             let model = models.remove(&spec.name);
             match &model {
                 Some((info, _)) => {
@@ -164,7 +169,7 @@ impl Server {
                 limits: config.limits,
                 tracker: config.tracker.clone(),
                 pool: pool.clone(),
-                fps,
+                fps: rate.clock,
                 time_tolerance: config.time_tolerance,
             };
             started.push(Scene::start(

@@ -153,11 +153,12 @@ impl Service {
     }
 
     /// The frame `batch` of `scene` would be grouped into now (its frame id less its camera's
-    /// clock offset, or its capture time's tick), without pushing it; an error where
-    /// [`push`](Self::push) would refuse it for its camera or its stamps.
-    pub fn frame_of(&self, scene: &str, batch: &Batch) -> Result<u64> {
-        self.scene(scene)?
+    /// clock offset, or its capture time's tick), without pushing it or counting anything;
+    /// `None` where [`push`](Self::push) would refuse it for its scene, camera or stamps.
+    pub(crate) fn frame_of(&self, scene: &str, batch: &Batch) -> Option<u64> {
+        self.find_scene(scene)?
             .frame_of_batch(&batch.camera, batch.frame_id, batch.time)
+            .ok()
     }
 
     /// Associates one already synchronized frame.

@@ -4,28 +4,65 @@ batches, raising on refused pushes, replaying recordings."""
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator, Mapping, Sequence
-from typing import Any
+from datetime import datetime
+from typing import Any, Union
 
 import numpy.typing as npt
 
 from .recording import ReplaySummary, open_recording
 from .types import Batch, Boxes, FrameResult, PushAck, ReloadOutcome, Scene, to_detections
 
+#: A capture time: an aware ``datetime`` or seconds since the Unix epoch.
+Timestamp = Union[datetime, float, int]
+
+
+def to_seconds(timestamp: Timestamp) -> float:
+    """A capture time as seconds since the Unix epoch; a naive datetime is refused (its zone
+    would be a guess)."""
+    if isinstance(timestamp, datetime):
+        if timestamp.tzinfo is None:
+            raise ValueError("timestamp must be timezone-aware (e.g. datetime.now(timezone.utc))")
+        return timestamp.timestamp()
+    seconds = float(timestamp)
+    if not math.isfinite(seconds) or seconds < 0:
+        raise ValueError(f"timestamp must be seconds since the Unix epoch, got {timestamp!r}")
+    return seconds
+
+
 def make_batch(
     scene: str,
     camera: str,
-    frame_id: int,
+    frame_id: int | None,
     boxes: Boxes,
     appearance: npt.ArrayLike | Sequence[Sequence[float]] | None = None,
+    timestamp: Timestamp | None = None,
 ) -> Batch:
-    """One batch from a camera's boxes in any accepted form (see ``types.Boxes``)."""
-    if frame_id < 0:
+    """One batch from a camera's boxes in any accepted form (see ``types.Boxes``), stamped
+    with a frame id, a capture time or both."""
+    if frame_id is None and timestamp is None:
+        raise ValueError("a batch needs a frame_id or a timestamp")
+    if frame_id is not None and frame_id < 0:
         raise ValueError("frame_id must be >= 0")
-    return Batch(scene, camera, int(frame_id), tuple(to_detections(boxes, appearance)))
+    seconds = None if timestamp is None else to_seconds(timestamp)
+    dets = tuple(to_detections(boxes, appearance))
+    return Batch(scene, camera, None if frame_id is None else int(frame_id), dets, seconds)
+
+
+def push_args(
+    frame_id: Any, boxes: Boxes | None, timestamp: Timestamp | None
+) -> tuple[int | None, Boxes]:
+    """``push(scene, camera, frame_id, boxes)`` or, with capture times,
+    ``push(scene, camera, boxes, timestamp=t)``: the frame id (if any) and the boxes."""
+    if boxes is None:
+        if timestamp is None:
+            raise TypeError("push() needs boxes: push(scene, camera, frame_id, boxes)")
+        return None, frame_id
+    return frame_id, boxes
 
 
 def frame_batches(scene: str, frame_id: int, views: Mapping[str, Boxes]) -> list[Batch]:
@@ -104,13 +141,19 @@ class SyncClient(ABC):
         self,
         scene: str,
         camera: str,
-        frame_id: int,
-        boxes: Boxes,
+        frame_id: Any,
+        boxes: Boxes | None = None,
         *,
+        timestamp: Timestamp | None = None,
         appearance: npt.ArrayLike | Sequence[Sequence[float]] | None = None,
         timeout: float | None = None,
     ) -> PushAck:
         """Pushes one camera's boxes for one frame and waits for the server's ack.
+
+        ``push(scene, camera, frame_id, boxes)``, or with the camera's capture time instead of
+        a frame id, ``push(scene, camera, boxes, timestamp=t)`` (``t`` an aware ``datetime``
+        or seconds since the Unix epoch; the scene must declare its frame rate, and the ack's
+        ``frame_id`` is the frame the batch went to).
 
         ``boxes``: a list of ``{"bbox": [x1, y1, x2, y2], "score"?: s, "appearance"?: [...]}``
         dicts or ``Detection`` objects, or an N×4 / N×5 (with scores) NumPy array in pixels;
@@ -118,8 +161,9 @@ class SyncClient(ABC):
         saw nobody. A refused batch raises its exception (``DuplicateBatch``, ``LateBatch``,
         ``InvalidArgument`` naming the field, ``NotFound``, ...). Not retried automatically.
         """
+        frame_id, boxes = push_args(frame_id, boxes, timestamp)
         (ack,) = self.push_many(
-            [make_batch(scene, camera, frame_id, boxes, appearance)], timeout=timeout
+            [make_batch(scene, camera, frame_id, boxes, appearance, timestamp)], timeout=timeout
         )
         if ack.error is not None:
             raise ack.error
@@ -187,15 +231,18 @@ class AsyncClient(ABC):
         self,
         scene: str,
         camera: str,
-        frame_id: int,
-        boxes: Boxes,
+        frame_id: Any,
+        boxes: Boxes | None = None,
         *,
+        timestamp: Timestamp | None = None,
         appearance: npt.ArrayLike | Sequence[Sequence[float]] | None = None,
         timeout: float | None = None,
     ) -> PushAck:
-        """Pushes one camera's boxes for one frame; a refused batch raises (see SyncClient.push)."""
+        """Pushes one camera's boxes for one frame (or, with ``timestamp=``, its capture
+        time); a refused batch raises (see SyncClient.push)."""
+        frame_id, boxes = push_args(frame_id, boxes, timestamp)
         (ack,) = await self.push_many(
-            [make_batch(scene, camera, frame_id, boxes, appearance)], timeout=timeout
+            [make_batch(scene, camera, frame_id, boxes, appearance, timestamp)], timeout=timeout
         )
         if ack.error is not None:
             raise ack.error

@@ -4,7 +4,10 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
+from datetime import datetime, timezone
 from typing import Any
+
+from google.protobuf.timestamp_pb2 import Timestamp
 
 from ._pb import crossview_pb2 as pb
 from .errors import GRPC_CODE_NAMES, Overloaded, ServerError, error_from_grpc
@@ -41,12 +44,36 @@ def detection_to_pb(d: Detection) -> pb.Detection:
 
 def batch_to_pb(b: Batch) -> pb.Batch:
     """One batch as its protobuf message."""
-    return pb.Batch(
+    msg = pb.Batch(
         scene=b.scene,
         camera=b.camera,
-        frame_id=b.frame_id,
+        frame_id=b.frame_id or 0,
         detections=[detection_to_pb(d) for d in b.detections],
     )
+    if b.timestamp is not None:
+        msg.time.CopyFrom(timestamp_to_pb(b.timestamp))
+    return msg
+
+
+def timestamp_to_pb(seconds: float) -> Timestamp:
+    """Seconds since the Unix epoch as a protobuf Timestamp (nanoseconds kept to ~0.2 µs)."""
+    whole = int(seconds // 1)
+    nanos = round((seconds - whole) * 1e9)
+    if nanos >= 1_000_000_000:
+        whole, nanos = whole + 1, nanos - 1_000_000_000
+    return Timestamp(seconds=whole, nanos=nanos)
+
+
+def time_from_json(value: object) -> datetime | None:
+    """A result's RFC 3339 ``time`` (nanoseconds: cut to microseconds) as an aware datetime."""
+    if not isinstance(value, str) or not value:
+        return None
+    text = value.replace("Z", "+00:00")
+    head, dot, rest = text.partition(".")
+    if dot:
+        digits = rest[: len(rest) - len(rest.lstrip("0123456789"))]
+        text = f"{head}.{digits[:6].ljust(6, '0')}{rest[len(digits):]}"
+    return datetime.fromisoformat(text)
 
 
 def ack_from_pb(a: pb.BatchAck) -> PushAck:
@@ -78,6 +105,7 @@ def result_from_pb(r: pb.FrameResult) -> FrameResult:
         ),
         latency_ms=r.latency_ms,
         status=_STATUS_FROM_PB.get(r.status, ResultStatus.UNSPECIFIED),
+        time=r.time.ToDatetime(tzinfo=timezone.utc) if r.HasField("time") else None,
         model_version=r.model_version or None,
         error=r.error or None,
         error_kind=r.error_kind or None,
@@ -171,6 +199,7 @@ def result_from_json(obj: object) -> FrameResult:
         ),
         latency_ms=float(r.get("latency_ms") or 0.0),
         status=status,
+        time=time_from_json(r.get("time")),
         model_version=r.get("model_version") or None,
         error=r.get("error") or None,
         error_kind=r.get("error_kind") or None,

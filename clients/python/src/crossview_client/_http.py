@@ -140,7 +140,9 @@ def _acks_from_ndjson(chunk: list[Batch], body: Any) -> list[PushAck]:
         elif not r.get("accepted"):
             err = r.get("error") or {}
             error = error_for_kind(str(err.get("kind") or ""), str(err.get("message") or "refused"))
-        acks.append(PushAck(b.scene, b.camera, b.frame_id, error))
+        placed = r.get("frame_id") if r is not None else None
+        frame_id = int(placed) if isinstance(placed, int) else b.frame_id
+        acks.append(PushAck(b.scene, b.camera, frame_id, error))
     return acks
 
 
@@ -151,7 +153,12 @@ def _single_ack(b: Batch, resp: httpx.Response) -> PushAck:
         if e.kind in ("connection", "unauthenticated", "unsupported_media_type", "forbidden", "unavailable"):
             raise
         return PushAck(b.scene, b.camera, b.frame_id, e)
-    return PushAck(b.scene, b.camera, b.frame_id, None)
+    try:
+        placed = resp.json().get("frame_id")
+    except ValueError:
+        placed = None
+    frame_id = int(placed) if isinstance(placed, int) else b.frame_id
+    return PushAck(b.scene, b.camera, frame_id, None)
 
 
 def _associate_body(scene: str, frame_id: int, views: Mapping[str, Boxes]) -> dict[str, Any]:

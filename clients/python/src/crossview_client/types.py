@@ -4,6 +4,7 @@ scenes, acks, reload outcomes), as plain dataclasses independent of the transpor
 from __future__ import annotations
 
 import enum
+from datetime import datetime
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, TypeAlias, Union
@@ -126,16 +127,22 @@ class Batch:
 
     scene: str
     camera: str
-    frame_id: int
+    #: The camera's frame id; ``None`` when the batch carries a capture time instead.
+    frame_id: int | None
     detections: tuple[Detection, ...]
+    #: When the camera captured the frame, in seconds since the Unix epoch (``None``: the
+    #: frame id says which frame it is). The scene must declare its frame rate.
+    timestamp: float | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The SPEC §7 batch line (without the scene, which is in the URL)."""
-        return {
-            "camera": self.camera,
-            "frame_id": self.frame_id,
-            "detections": [d.to_json() for d in self.detections],
-        }
+        line: dict[str, Any] = {"camera": self.camera}
+        if self.frame_id is not None:
+            line["frame_id"] = self.frame_id
+        if self.timestamp is not None:
+            line["time"] = self.timestamp
+        line["detections"] = [d.to_json() for d in self.detections]
+        return line
 
 
 @dataclass(frozen=True, slots=True)
@@ -187,6 +194,8 @@ class FrameResult:
     error_kind: str | None = None
     #: Cameras left out of association because they no longer fit the model (they moved).
     fenced_cameras: tuple[str, ...] = ()
+    #: The frame's tick time (UTC), for a scene fed capture times; ``None`` otherwise.
+    time: datetime | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -222,7 +231,9 @@ class PushAck:
 
     scene: str
     camera: str
-    frame_id: int
+    #: The frame id the batch was placed at (a timestamped batch's tick); ``None`` when a
+    #: timestamped batch was refused.
+    frame_id: int | None
     error: Exception | None = None
 
     @property

@@ -108,6 +108,15 @@ impl RecordConfig {
     }
 }
 
+/// A recorded scene's frame rates: the one it declares (its headers declare it), and its
+/// clock's (declared, or the model's training rate: declared in the headers once the scene is
+/// fed capture times).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub(crate) struct SceneRate {
+    pub declared: Option<f64>,
+    pub clock: Option<f64>,
+}
+
 /// One accepted batch on its way to the writer.
 enum Msg {
     Batch {
@@ -157,7 +166,7 @@ impl Recorder {
     pub(crate) fn start(
         config: RecordConfig,
         scenes: &[SceneSpec],
-        rates: &[Option<f64>],
+        rates: &[SceneRate],
         metrics: Metrics,
     ) -> Result<Arc<Recorder>> {
         config.validate()?;

@@ -60,8 +60,11 @@ struct SceneState {
     dir: PathBuf,
     /// The scene as the current file's header declares it (clock offsets as applied).
     spec: SceneSpec,
-    /// The scene's frame rate (its headers declare it: a reader groups capture times by it).
+    /// The frame rate its headers declare: the scene's declared rate, or its clock's once it
+    /// is fed capture times (its frame ids are then ticks of that rate).
     fps: Option<f64>,
+    /// The scene's clock (declared, or the model's training rate).
+    clock_fps: Option<f64>,
     header: Vec<u8>,
     open: Option<OpenFile>,
     last_error_log: Option<Instant>,
@@ -143,14 +146,15 @@ impl Writer {
     pub(super) fn open(
         config: RecordConfig,
         scenes: &[SceneSpec],
-        rates: &[Option<f64>],
+        rates: &[super::SceneRate],
         metrics: Metrics,
     ) -> Result<Writer> {
         let dir = &config.dir;
         std::fs::create_dir_all(dir).map_err(|e| io_err(dir, e))?;
         let mut states = Vec::new();
         for (k, spec) in scenes.iter().enumerate() {
-            let fps = rates.get(k).copied().flatten();
+            let rate = rates.get(k).copied().unwrap_or_default();
+            let fps = rate.declared;
             if spec.name.chars().all(|c| c == '.') {
                 return Err(Error::invalid(
                     "--record",
@@ -164,6 +168,7 @@ impl Writer {
                 dir: sdir,
                 spec: spec.clone(),
                 fps,
+                clock_fps: rate.clock,
                 header: header_line(spec, fps)?,
                 open: None,
                 last_error_log: None,
@@ -247,6 +252,9 @@ impl Writer {
                     cost,
                 } => {
                     self.follow_offset(scene, camera_index, offset);
+                    if time.is_some() {
+                        self.follow_clock(scene);
+                    }
                     self.write(scene, camera_index, frame_id, time, &detections);
                     queued.fetch_sub(cost, Ordering::AcqRel);
                 }
@@ -272,6 +280,21 @@ impl Writer {
         tracing::info!(scene = %st.name, camera = %c.name, from = c.offset, to = offset,
             "recording: a camera's clock offset changed; starting a new file");
         c.offset = offset;
+        match header_line(&st.spec, st.fps) {
+            Ok(h) => st.header = h,
+            Err(e) => tracing::error!(error = %e, "cannot serialize the scene header"),
+        }
+        self.close_file(s);
+    }
+
+    /// Scene `s` is fed capture times: its headers declare its clock's rate from now on (a
+    /// file begun without it is closed).
+    fn follow_clock(&mut self, s: usize) {
+        let st = &mut self.scenes[s];
+        if st.fps.is_some() || st.clock_fps.is_none() {
+            return;
+        }
+        st.fps = st.clock_fps;
         match header_line(&st.spec, st.fps) {
             Ok(h) => st.header = h,
             Err(e) => tracing::error!(error = %e, "cannot serialize the scene header"),

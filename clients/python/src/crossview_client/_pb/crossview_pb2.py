@@ -22,63 +22,64 @@ _runtime_version.ValidateProtobufRuntimeVersion(
 _sym_db = _symbol_database.Default()
 
 
+from google.protobuf import timestamp_pb2 as google_dot_protobuf_dot_timestamp__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n$crossview_client/_pb/crossview.proto\x12\x0c\x63rossview.v1\"=\n\x0b\x42oundingBox\x12\n\n\x02x1\x18\x01 \x01(\x02\x12\n\n\x02y1\x18\x02 \x01(\x02\x12\n\n\x02x2\x18\x03 \x01(\x02\x12\n\n\x02y2\x18\x04 \x01(\x02\"f\n\tDetection\x12\'\n\x04\x62\x62ox\x18\x01 \x01(\x0b\x32\x19.crossview.v1.BoundingBox\x12\x12\n\x05score\x18\x02 \x01(\x02H\x00\x88\x01\x01\x12\x12\n\nappearance\x18\x03 \x03(\x02\x42\x08\n\x06_score\"e\n\x05\x42\x61tch\x12\r\n\x05scene\x18\x01 \x01(\t\x12\x0e\n\x06\x63\x61mera\x18\x02 \x01(\t\x12\x10\n\x08\x66rame_id\x18\x03 \x01(\x04\x12+\n\ndetections\x18\x04 \x03(\x0b\x32\x17.crossview.v1.Detection\"\x80\x01\n\x08\x42\x61tchAck\x12\r\n\x05scene\x18\x01 \x01(\t\x12\x0e\n\x06\x63\x61mera\x18\x02 \x01(\t\x12\x10\n\x08\x66rame_id\x18\x03 \x01(\x04\x12\x0c\n\x04\x63ode\x18\x04 \x01(\x05\x12\x0f\n\x07message\x18\x05 \x01(\t\x12\x0c\n\x04kind\x18\x06 \x01(\t\x12\x16\n\x0eretry_after_ms\x18\x07 \x01(\x04\"I\n\nCameraView\x12\x0e\n\x06\x63\x61mera\x18\x01 \x01(\t\x12+\n\ndetections\x18\x02 \x03(\x0b\x32\x17.crossview.v1.Detection\"\\\n\x10\x41ssociateRequest\x12\r\n\x05scene\x18\x01 \x01(\t\x12\x10\n\x08\x66rame_id\x18\x02 \x01(\x04\x12\'\n\x05views\x18\x03 \x03(\x0b\x32\x18.crossview.v1.CameraView\"=\n\x06Member\x12\x0e\n\x06\x63\x61mera\x18\x01 \x01(\t\x12\x14\n\x0c\x63\x61mera_index\x18\x02 \x01(\r\x12\r\n\x05index\x18\x03 \x01(\r\"u\n\x08Identity\x12\n\n\x02id\x18\x01 \x01(\r\x12\x12\n\nconfidence\x18\x02 \x01(\x02\x12%\n\x07members\x18\x03 \x03(\x0b\x32\x14.crossview.v1.Member\x12\x15\n\x08track_id\x18\x04 \x01(\x04H\x00\x88\x01\x01\x42\x0b\n\t_track_id\"\x97\x02\n\x0b\x46rameResult\x12\r\n\x05scene\x18\x01 \x01(\t\x12\x10\n\x08\x66rame_id\x18\x02 \x01(\x04\x12\x10\n\x08\x63omplete\x18\x03 \x01(\x08\x12\x17\n\x0fmissing_cameras\x18\x04 \x03(\t\x12*\n\nidentities\x18\x05 \x03(\x0b\x32\x16.crossview.v1.Identity\x12\x12\n\nlatency_ms\x18\x06 \x01(\x01\x12\r\n\x05\x65rror\x18\x07 \x01(\t\x12\x12\n\nerror_kind\x18\x08 \x01(\t\x12*\n\x06status\x18\t \x01(\x0e\x32\x1a.crossview.v1.ResultStatus\x12\x15\n\rmodel_version\x18\n \x01(\t\x12\x16\n\x0e\x66\x65nced_cameras\x18\x0b \x03(\t\"m\n\x0eStreamResponse\x12%\n\x03\x61\x63k\x18\x01 \x01(\x0b\x32\x16.crossview.v1.BatchAckH\x00\x12+\n\x06result\x18\x02 \x01(\x0b\x32\x19.crossview.v1.FrameResultH\x00\x42\x07\n\x05\x65vent\"!\n\x10SubscribeRequest\x12\r\n\x05scene\x18\x01 \x01(\t\"\x13\n\x11ListScenesRequest\"9\n\x12ListScenesResponse\x12#\n\x06scenes\x18\x01 \x03(\x0b\x32\x13.crossview.v1.Scene\"\x0f\n\rReloadRequest\">\n\x0eReloadResponse\x12,\n\x07reloads\x18\x01 \x03(\x0b\x32\x1b.crossview.v1.ReloadOutcome\"O\n\rReloadOutcome\x12\r\n\x05scene\x18\x01 \x01(\t\x12\x0f\n\x07outcome\x18\x02 \x01(\t\x12\x0f\n\x07version\x18\x03 \x01(\t\x12\r\n\x05\x65rror\x18\x04 \x01(\t\" \n\x0fGetSceneRequest\x12\r\n\x05scene\x18\x01 \x01(\t\"E\n\x06\x43\x61mera\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\r\n\x05width\x18\x02 \x01(\r\x12\x0e\n\x06height\x18\x03 \x01(\r\x12\x0e\n\x06offset\x18\x04 \x01(\x03\"\xfd\x01\n\x05Scene\x12\x0c\n\x04name\x18\x01 \x01(\t\x12%\n\x07\x63\x61meras\x18\x02 \x03(\x0b\x32\x14.crossview.v1.Camera\x12\x11\n\tthreshold\x18\x03 \x01(\x02\x12\r\n\x05\x61lpha\x18\x04 \x01(\x02\x12\x15\n\rmodel_version\x18\x05 \x01(\t\x12\x19\n\x11\x61ppearance_length\x18\x06 \x01(\r\x12\x17\n\x0fsync_timeout_ms\x18\x07 \x01(\x04\x12*\n\x05\x63lock\x18\x08 \x01(\x0b\x32\x1b.crossview.v1.ClockEstimate\x12&\n\x03\x66it\x18\t \x01(\x0b\x32\x19.crossview.v1.FitEstimate\"\\\n\x0b\x46itEstimate\x12\x0e\n\x06\x66rames\x18\x01 \x01(\r\x12\x13\n\x0b\x61s_of_frame\x18\x02 \x01(\x04\x12(\n\x07\x63\x61meras\x18\x03 \x03(\x0b\x32\x17.crossview.v1.CameraFit\"H\n\tCameraFit\x12\x0e\n\x06\x63\x61mera\x18\x01 \x01(\t\x12\r\n\x05known\x18\x02 \x01(\x08\x12\r\n\x05score\x18\x03 \x01(\x02\x12\r\n\x05state\x18\x04 \x01(\t\"\x81\x01\n\rClockEstimate\x12\x0e\n\x06\x66rames\x18\x01 \x01(\r\x12\x13\n\x0b\x61s_of_frame\x18\x02 \x01(\x04\x12\x0c\n\x04step\x18\x03 \x01(\x03\x12\x11\n\treference\x18\x04 \x01(\t\x12*\n\x07\x63\x61meras\x18\x05 \x03(\x0b\x32\x19.crossview.v1.CameraClock\"k\n\x0b\x43\x61meraClock\x12\x0e\n\x06\x63\x61mera\x18\x01 \x01(\t\x12\r\n\x05known\x18\x02 \x01(\x08\x12\x15\n\roffset_frames\x18\x03 \x01(\x02\x12\x12\n\noffset_ids\x18\x04 \x01(\x03\x12\x12\n\nconfidence\x18\x05 \x01(\x02*\x99\x01\n\x0cResultStatus\x12\x1d\n\x19RESULT_STATUS_UNSPECIFIED\x10\x00\x12\x1c\n\x18RESULT_STATUS_ASSOCIATED\x10\x01\x12\x1a\n\x16RESULT_STATUS_NO_MODEL\x10\x02\x12\x18\n\x14RESULT_STATUS_FAILED\x10\x03\x12\x16\n\x12RESULT_STATUS_SHED\x10\x04\x32\xef\x03\n\x0b\x41ssociation\x12\x46\n\tAssociate\x12\x1e.crossview.v1.AssociateRequest\x1a\x19.crossview.v1.FrameResult\x12\x37\n\x04Push\x12\x13.crossview.v1.Batch\x1a\x16.crossview.v1.BatchAck(\x01\x30\x01\x12H\n\tSubscribe\x12\x1e.crossview.v1.SubscribeRequest\x1a\x19.crossview.v1.FrameResult0\x01\x12?\n\x06Stream\x12\x13.crossview.v1.Batch\x1a\x1c.crossview.v1.StreamResponse(\x01\x30\x01\x12O\n\nListScenes\x12\x1f.crossview.v1.ListScenesRequest\x1a .crossview.v1.ListScenesResponse\x12>\n\x08GetScene\x12\x1d.crossview.v1.GetSceneRequest\x1a\x13.crossview.v1.Scene\x12\x43\n\x06Reload\x12\x1b.crossview.v1.ReloadRequest\x1a\x1c.crossview.v1.ReloadResponseb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n$crossview_client/_pb/crossview.proto\x12\x0c\x63rossview.v1\x1a\x1fgoogle/protobuf/timestamp.proto\"=\n\x0b\x42oundingBox\x12\n\n\x02x1\x18\x01 \x01(\x02\x12\n\n\x02y1\x18\x02 \x01(\x02\x12\n\n\x02x2\x18\x03 \x01(\x02\x12\n\n\x02y2\x18\x04 \x01(\x02\"f\n\tDetection\x12\'\n\x04\x62\x62ox\x18\x01 \x01(\x0b\x32\x19.crossview.v1.BoundingBox\x12\x12\n\x05score\x18\x02 \x01(\x02H\x00\x88\x01\x01\x12\x12\n\nappearance\x18\x03 \x03(\x02\x42\x08\n\x06_score\"\x8f\x01\n\x05\x42\x61tch\x12\r\n\x05scene\x18\x01 \x01(\t\x12\x0e\n\x06\x63\x61mera\x18\x02 \x01(\t\x12\x10\n\x08\x66rame_id\x18\x03 \x01(\x04\x12+\n\ndetections\x18\x04 \x03(\x0b\x32\x17.crossview.v1.Detection\x12(\n\x04time\x18\x05 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\"\x80\x01\n\x08\x42\x61tchAck\x12\r\n\x05scene\x18\x01 \x01(\t\x12\x0e\n\x06\x63\x61mera\x18\x02 \x01(\t\x12\x10\n\x08\x66rame_id\x18\x03 \x01(\x04\x12\x0c\n\x04\x63ode\x18\x04 \x01(\x05\x12\x0f\n\x07message\x18\x05 \x01(\t\x12\x0c\n\x04kind\x18\x06 \x01(\t\x12\x16\n\x0eretry_after_ms\x18\x07 \x01(\x04\"I\n\nCameraView\x12\x0e\n\x06\x63\x61mera\x18\x01 \x01(\t\x12+\n\ndetections\x18\x02 \x03(\x0b\x32\x17.crossview.v1.Detection\"\x86\x01\n\x10\x41ssociateRequest\x12\r\n\x05scene\x18\x01 \x01(\t\x12\x10\n\x08\x66rame_id\x18\x02 \x01(\x04\x12\'\n\x05views\x18\x03 \x03(\x0b\x32\x18.crossview.v1.CameraView\x12(\n\x04time\x18\x04 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\"=\n\x06Member\x12\x0e\n\x06\x63\x61mera\x18\x01 \x01(\t\x12\x14\n\x0c\x63\x61mera_index\x18\x02 \x01(\r\x12\r\n\x05index\x18\x03 \x01(\r\"u\n\x08Identity\x12\n\n\x02id\x18\x01 \x01(\r\x12\x12\n\nconfidence\x18\x02 \x01(\x02\x12%\n\x07members\x18\x03 \x03(\x0b\x32\x14.crossview.v1.Member\x12\x15\n\x08track_id\x18\x04 \x01(\x04H\x00\x88\x01\x01\x42\x0b\n\t_track_id\"\xc1\x02\n\x0b\x46rameResult\x12\r\n\x05scene\x18\x01 \x01(\t\x12\x10\n\x08\x66rame_id\x18\x02 \x01(\x04\x12\x10\n\x08\x63omplete\x18\x03 \x01(\x08\x12\x17\n\x0fmissing_cameras\x18\x04 \x03(\t\x12*\n\nidentities\x18\x05 \x03(\x0b\x32\x16.crossview.v1.Identity\x12\x12\n\nlatency_ms\x18\x06 \x01(\x01\x12\r\n\x05\x65rror\x18\x07 \x01(\t\x12\x12\n\nerror_kind\x18\x08 \x01(\t\x12*\n\x06status\x18\t \x01(\x0e\x32\x1a.crossview.v1.ResultStatus\x12\x15\n\rmodel_version\x18\n \x01(\t\x12\x16\n\x0e\x66\x65nced_cameras\x18\x0b \x03(\t\x12(\n\x04time\x18\x0c \x01(\x0b\x32\x1a.google.protobuf.Timestamp\"m\n\x0eStreamResponse\x12%\n\x03\x61\x63k\x18\x01 \x01(\x0b\x32\x16.crossview.v1.BatchAckH\x00\x12+\n\x06result\x18\x02 \x01(\x0b\x32\x19.crossview.v1.FrameResultH\x00\x42\x07\n\x05\x65vent\"!\n\x10SubscribeRequest\x12\r\n\x05scene\x18\x01 \x01(\t\"\x13\n\x11ListScenesRequest\"9\n\x12ListScenesResponse\x12#\n\x06scenes\x18\x01 \x03(\x0b\x32\x13.crossview.v1.Scene\"\x0f\n\rReloadRequest\">\n\x0eReloadResponse\x12,\n\x07reloads\x18\x01 \x03(\x0b\x32\x1b.crossview.v1.ReloadOutcome\"O\n\rReloadOutcome\x12\r\n\x05scene\x18\x01 \x01(\t\x12\x0f\n\x07outcome\x18\x02 \x01(\t\x12\x0f\n\x07version\x18\x03 \x01(\t\x12\r\n\x05\x65rror\x18\x04 \x01(\t\" \n\x0fGetSceneRequest\x12\r\n\x05scene\x18\x01 \x01(\t\"E\n\x06\x43\x61mera\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\r\n\x05width\x18\x02 \x01(\r\x12\x0e\n\x06height\x18\x03 \x01(\r\x12\x0e\n\x06offset\x18\x04 \x01(\x03\"\xfd\x01\n\x05Scene\x12\x0c\n\x04name\x18\x01 \x01(\t\x12%\n\x07\x63\x61meras\x18\x02 \x03(\x0b\x32\x14.crossview.v1.Camera\x12\x11\n\tthreshold\x18\x03 \x01(\x02\x12\r\n\x05\x61lpha\x18\x04 \x01(\x02\x12\x15\n\rmodel_version\x18\x05 \x01(\t\x12\x19\n\x11\x61ppearance_length\x18\x06 \x01(\r\x12\x17\n\x0fsync_timeout_ms\x18\x07 \x01(\x04\x12*\n\x05\x63lock\x18\x08 \x01(\x0b\x32\x1b.crossview.v1.ClockEstimate\x12&\n\x03\x66it\x18\t \x01(\x0b\x32\x19.crossview.v1.FitEstimate\"\\\n\x0b\x46itEstimate\x12\x0e\n\x06\x66rames\x18\x01 \x01(\r\x12\x13\n\x0b\x61s_of_frame\x18\x02 \x01(\x04\x12(\n\x07\x63\x61meras\x18\x03 \x03(\x0b\x32\x17.crossview.v1.CameraFit\"H\n\tCameraFit\x12\x0e\n\x06\x63\x61mera\x18\x01 \x01(\t\x12\r\n\x05known\x18\x02 \x01(\x08\x12\r\n\x05score\x18\x03 \x01(\x02\x12\r\n\x05state\x18\x04 \x01(\t\"\x81\x01\n\rClockEstimate\x12\x0e\n\x06\x66rames\x18\x01 \x01(\r\x12\x13\n\x0b\x61s_of_frame\x18\x02 \x01(\x04\x12\x0c\n\x04step\x18\x03 \x01(\x03\x12\x11\n\treference\x18\x04 \x01(\t\x12*\n\x07\x63\x61meras\x18\x05 \x03(\x0b\x32\x19.crossview.v1.CameraClock\"\xeb\x01\n\x0b\x43\x61meraClock\x12\x0e\n\x06\x63\x61mera\x18\x01 \x01(\t\x12\r\n\x05known\x18\x02 \x01(\x08\x12\x15\n\roffset_frames\x18\x03 \x01(\x02\x12\x12\n\noffset_ids\x18\x04 \x01(\x03\x12\x12\n\nconfidence\x18\x05 \x01(\x02\x12\x16\n\toffset_ms\x18\x06 \x01(\x01H\x00\x88\x01\x01\x12\x1d\n\x10\x64rift_ms_per_min\x18\x07 \x01(\x01H\x01\x88\x01\x01\x12\x16\n\tjitter_ms\x18\x08 \x01(\x01H\x02\x88\x01\x01\x42\x0c\n\n_offset_msB\x13\n\x11_drift_ms_per_minB\x0c\n\n_jitter_ms*\x99\x01\n\x0cResultStatus\x12\x1d\n\x19RESULT_STATUS_UNSPECIFIED\x10\x00\x12\x1c\n\x18RESULT_STATUS_ASSOCIATED\x10\x01\x12\x1a\n\x16RESULT_STATUS_NO_MODEL\x10\x02\x12\x18\n\x14RESULT_STATUS_FAILED\x10\x03\x12\x16\n\x12RESULT_STATUS_SHED\x10\x04\x32\xef\x03\n\x0b\x41ssociation\x12\x46\n\tAssociate\x12\x1e.crossview.v1.AssociateRequest\x1a\x19.crossview.v1.FrameResult\x12\x37\n\x04Push\x12\x13.crossview.v1.Batch\x1a\x16.crossview.v1.BatchAck(\x01\x30\x01\x12H\n\tSubscribe\x12\x1e.crossview.v1.SubscribeRequest\x1a\x19.crossview.v1.FrameResult0\x01\x12?\n\x06Stream\x12\x13.crossview.v1.Batch\x1a\x1c.crossview.v1.StreamResponse(\x01\x30\x01\x12O\n\nListScenes\x12\x1f.crossview.v1.ListScenesRequest\x1a .crossview.v1.ListScenesResponse\x12>\n\x08GetScene\x12\x1d.crossview.v1.GetSceneRequest\x1a\x13.crossview.v1.Scene\x12\x43\n\x06Reload\x12\x1b.crossview.v1.ReloadRequest\x1a\x1c.crossview.v1.ReloadResponseb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'crossview_client._pb.crossview_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_RESULTSTATUS']._serialized_start=2247
-  _globals['_RESULTSTATUS']._serialized_end=2400
-  _globals['_BOUNDINGBOX']._serialized_start=54
-  _globals['_BOUNDINGBOX']._serialized_end=115
-  _globals['_DETECTION']._serialized_start=117
-  _globals['_DETECTION']._serialized_end=219
-  _globals['_BATCH']._serialized_start=221
-  _globals['_BATCH']._serialized_end=322
-  _globals['_BATCHACK']._serialized_start=325
-  _globals['_BATCHACK']._serialized_end=453
-  _globals['_CAMERAVIEW']._serialized_start=455
-  _globals['_CAMERAVIEW']._serialized_end=528
-  _globals['_ASSOCIATEREQUEST']._serialized_start=530
-  _globals['_ASSOCIATEREQUEST']._serialized_end=622
-  _globals['_MEMBER']._serialized_start=624
-  _globals['_MEMBER']._serialized_end=685
-  _globals['_IDENTITY']._serialized_start=687
-  _globals['_IDENTITY']._serialized_end=804
-  _globals['_FRAMERESULT']._serialized_start=807
-  _globals['_FRAMERESULT']._serialized_end=1086
-  _globals['_STREAMRESPONSE']._serialized_start=1088
-  _globals['_STREAMRESPONSE']._serialized_end=1197
-  _globals['_SUBSCRIBEREQUEST']._serialized_start=1199
-  _globals['_SUBSCRIBEREQUEST']._serialized_end=1232
-  _globals['_LISTSCENESREQUEST']._serialized_start=1234
-  _globals['_LISTSCENESREQUEST']._serialized_end=1253
-  _globals['_LISTSCENESRESPONSE']._serialized_start=1255
-  _globals['_LISTSCENESRESPONSE']._serialized_end=1312
-  _globals['_RELOADREQUEST']._serialized_start=1314
-  _globals['_RELOADREQUEST']._serialized_end=1329
-  _globals['_RELOADRESPONSE']._serialized_start=1331
-  _globals['_RELOADRESPONSE']._serialized_end=1393
-  _globals['_RELOADOUTCOME']._serialized_start=1395
-  _globals['_RELOADOUTCOME']._serialized_end=1474
-  _globals['_GETSCENEREQUEST']._serialized_start=1476
-  _globals['_GETSCENEREQUEST']._serialized_end=1508
-  _globals['_CAMERA']._serialized_start=1510
-  _globals['_CAMERA']._serialized_end=1579
-  _globals['_SCENE']._serialized_start=1582
-  _globals['_SCENE']._serialized_end=1835
-  _globals['_FITESTIMATE']._serialized_start=1837
-  _globals['_FITESTIMATE']._serialized_end=1929
-  _globals['_CAMERAFIT']._serialized_start=1931
-  _globals['_CAMERAFIT']._serialized_end=2003
-  _globals['_CLOCKESTIMATE']._serialized_start=2006
-  _globals['_CLOCKESTIMATE']._serialized_end=2135
-  _globals['_CAMERACLOCK']._serialized_start=2137
-  _globals['_CAMERACLOCK']._serialized_end=2244
-  _globals['_ASSOCIATION']._serialized_start=2403
-  _globals['_ASSOCIATION']._serialized_end=2898
+  _globals['_RESULTSTATUS']._serialized_start=2537
+  _globals['_RESULTSTATUS']._serialized_end=2690
+  _globals['_BOUNDINGBOX']._serialized_start=87
+  _globals['_BOUNDINGBOX']._serialized_end=148
+  _globals['_DETECTION']._serialized_start=150
+  _globals['_DETECTION']._serialized_end=252
+  _globals['_BATCH']._serialized_start=255
+  _globals['_BATCH']._serialized_end=398
+  _globals['_BATCHACK']._serialized_start=401
+  _globals['_BATCHACK']._serialized_end=529
+  _globals['_CAMERAVIEW']._serialized_start=531
+  _globals['_CAMERAVIEW']._serialized_end=604
+  _globals['_ASSOCIATEREQUEST']._serialized_start=607
+  _globals['_ASSOCIATEREQUEST']._serialized_end=741
+  _globals['_MEMBER']._serialized_start=743
+  _globals['_MEMBER']._serialized_end=804
+  _globals['_IDENTITY']._serialized_start=806
+  _globals['_IDENTITY']._serialized_end=923
+  _globals['_FRAMERESULT']._serialized_start=926
+  _globals['_FRAMERESULT']._serialized_end=1247
+  _globals['_STREAMRESPONSE']._serialized_start=1249
+  _globals['_STREAMRESPONSE']._serialized_end=1358
+  _globals['_SUBSCRIBEREQUEST']._serialized_start=1360
+  _globals['_SUBSCRIBEREQUEST']._serialized_end=1393
+  _globals['_LISTSCENESREQUEST']._serialized_start=1395
+  _globals['_LISTSCENESREQUEST']._serialized_end=1414
+  _globals['_LISTSCENESRESPONSE']._serialized_start=1416
+  _globals['_LISTSCENESRESPONSE']._serialized_end=1473
+  _globals['_RELOADREQUEST']._serialized_start=1475
+  _globals['_RELOADREQUEST']._serialized_end=1490
+  _globals['_RELOADRESPONSE']._serialized_start=1492
+  _globals['_RELOADRESPONSE']._serialized_end=1554
+  _globals['_RELOADOUTCOME']._serialized_start=1556
+  _globals['_RELOADOUTCOME']._serialized_end=1635
+  _globals['_GETSCENEREQUEST']._serialized_start=1637
+  _globals['_GETSCENEREQUEST']._serialized_end=1669
+  _globals['_CAMERA']._serialized_start=1671
+  _globals['_CAMERA']._serialized_end=1740
+  _globals['_SCENE']._serialized_start=1743
+  _globals['_SCENE']._serialized_end=1996
+  _globals['_FITESTIMATE']._serialized_start=1998
+  _globals['_FITESTIMATE']._serialized_end=2090
+  _globals['_CAMERAFIT']._serialized_start=2092
+  _globals['_CAMERAFIT']._serialized_end=2164
+  _globals['_CLOCKESTIMATE']._serialized_start=2167
+  _globals['_CLOCKESTIMATE']._serialized_end=2296
+  _globals['_CAMERACLOCK']._serialized_start=2299
+  _globals['_CAMERACLOCK']._serialized_end=2534
+  _globals['_ASSOCIATION']._serialized_start=2693
+  _globals['_ASSOCIATION']._serialized_end=3188
 # @@protoc_insertion_point(module_scope)

@@ -1,3 +1,6 @@
+import datetime
+
+from google.protobuf import timestamp_pb2 as _timestamp_pb2
 from google.protobuf.internal import containers as _containers
 from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 from google.protobuf import descriptor as _descriptor
@@ -43,16 +46,18 @@ class Detection(_message.Message):
     def __init__(self, bbox: _Optional[_Union[BoundingBox, _Mapping]] = ..., score: _Optional[float] = ..., appearance: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class Batch(_message.Message):
-    __slots__ = ("scene", "camera", "frame_id", "detections")
+    __slots__ = ("scene", "camera", "frame_id", "detections", "time")
     SCENE_FIELD_NUMBER: _ClassVar[int]
     CAMERA_FIELD_NUMBER: _ClassVar[int]
     FRAME_ID_FIELD_NUMBER: _ClassVar[int]
     DETECTIONS_FIELD_NUMBER: _ClassVar[int]
+    TIME_FIELD_NUMBER: _ClassVar[int]
     scene: str
     camera: str
     frame_id: int
     detections: _containers.RepeatedCompositeFieldContainer[Detection]
-    def __init__(self, scene: _Optional[str] = ..., camera: _Optional[str] = ..., frame_id: _Optional[int] = ..., detections: _Optional[_Iterable[_Union[Detection, _Mapping]]] = ...) -> None: ...
+    time: _timestamp_pb2.Timestamp
+    def __init__(self, scene: _Optional[str] = ..., camera: _Optional[str] = ..., frame_id: _Optional[int] = ..., detections: _Optional[_Iterable[_Union[Detection, _Mapping]]] = ..., time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ...) -> None: ...
 
 class BatchAck(_message.Message):
     __slots__ = ("scene", "camera", "frame_id", "code", "message", "kind", "retry_after_ms")
@@ -81,14 +86,16 @@ class CameraView(_message.Message):
     def __init__(self, camera: _Optional[str] = ..., detections: _Optional[_Iterable[_Union[Detection, _Mapping]]] = ...) -> None: ...
 
 class AssociateRequest(_message.Message):
-    __slots__ = ("scene", "frame_id", "views")
+    __slots__ = ("scene", "frame_id", "views", "time")
     SCENE_FIELD_NUMBER: _ClassVar[int]
     FRAME_ID_FIELD_NUMBER: _ClassVar[int]
     VIEWS_FIELD_NUMBER: _ClassVar[int]
+    TIME_FIELD_NUMBER: _ClassVar[int]
     scene: str
     frame_id: int
     views: _containers.RepeatedCompositeFieldContainer[CameraView]
-    def __init__(self, scene: _Optional[str] = ..., frame_id: _Optional[int] = ..., views: _Optional[_Iterable[_Union[CameraView, _Mapping]]] = ...) -> None: ...
+    time: _timestamp_pb2.Timestamp
+    def __init__(self, scene: _Optional[str] = ..., frame_id: _Optional[int] = ..., views: _Optional[_Iterable[_Union[CameraView, _Mapping]]] = ..., time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ...) -> None: ...
 
 class Member(_message.Message):
     __slots__ = ("camera", "camera_index", "index")
@@ -113,7 +120,7 @@ class Identity(_message.Message):
     def __init__(self, id: _Optional[int] = ..., confidence: _Optional[float] = ..., members: _Optional[_Iterable[_Union[Member, _Mapping]]] = ..., track_id: _Optional[int] = ...) -> None: ...
 
 class FrameResult(_message.Message):
-    __slots__ = ("scene", "frame_id", "complete", "missing_cameras", "identities", "latency_ms", "error", "error_kind", "status", "model_version", "fenced_cameras")
+    __slots__ = ("scene", "frame_id", "complete", "missing_cameras", "identities", "latency_ms", "error", "error_kind", "status", "model_version", "fenced_cameras", "time")
     SCENE_FIELD_NUMBER: _ClassVar[int]
     FRAME_ID_FIELD_NUMBER: _ClassVar[int]
     COMPLETE_FIELD_NUMBER: _ClassVar[int]
@@ -125,6 +132,7 @@ class FrameResult(_message.Message):
     STATUS_FIELD_NUMBER: _ClassVar[int]
     MODEL_VERSION_FIELD_NUMBER: _ClassVar[int]
     FENCED_CAMERAS_FIELD_NUMBER: _ClassVar[int]
+    TIME_FIELD_NUMBER: _ClassVar[int]
     scene: str
     frame_id: int
     complete: bool
@@ -136,7 +144,8 @@ class FrameResult(_message.Message):
     status: ResultStatus
     model_version: str
     fenced_cameras: _containers.RepeatedScalarFieldContainer[str]
-    def __init__(self, scene: _Optional[str] = ..., frame_id: _Optional[int] = ..., complete: _Optional[bool] = ..., missing_cameras: _Optional[_Iterable[str]] = ..., identities: _Optional[_Iterable[_Union[Identity, _Mapping]]] = ..., latency_ms: _Optional[float] = ..., error: _Optional[str] = ..., error_kind: _Optional[str] = ..., status: _Optional[_Union[ResultStatus, str]] = ..., model_version: _Optional[str] = ..., fenced_cameras: _Optional[_Iterable[str]] = ...) -> None: ...
+    time: _timestamp_pb2.Timestamp
+    def __init__(self, scene: _Optional[str] = ..., frame_id: _Optional[int] = ..., complete: _Optional[bool] = ..., missing_cameras: _Optional[_Iterable[str]] = ..., identities: _Optional[_Iterable[_Union[Identity, _Mapping]]] = ..., latency_ms: _Optional[float] = ..., error: _Optional[str] = ..., error_kind: _Optional[str] = ..., status: _Optional[_Union[ResultStatus, str]] = ..., model_version: _Optional[str] = ..., fenced_cameras: _Optional[_Iterable[str]] = ..., time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ...) -> None: ...
 
 class StreamResponse(_message.Message):
     __slots__ = ("ack", "result")
@@ -261,15 +270,21 @@ class ClockEstimate(_message.Message):
     def __init__(self, frames: _Optional[int] = ..., as_of_frame: _Optional[int] = ..., step: _Optional[int] = ..., reference: _Optional[str] = ..., cameras: _Optional[_Iterable[_Union[CameraClock, _Mapping]]] = ...) -> None: ...
 
 class CameraClock(_message.Message):
-    __slots__ = ("camera", "known", "offset_frames", "offset_ids", "confidence")
+    __slots__ = ("camera", "known", "offset_frames", "offset_ids", "confidence", "offset_ms", "drift_ms_per_min", "jitter_ms")
     CAMERA_FIELD_NUMBER: _ClassVar[int]
     KNOWN_FIELD_NUMBER: _ClassVar[int]
     OFFSET_FRAMES_FIELD_NUMBER: _ClassVar[int]
     OFFSET_IDS_FIELD_NUMBER: _ClassVar[int]
     CONFIDENCE_FIELD_NUMBER: _ClassVar[int]
+    OFFSET_MS_FIELD_NUMBER: _ClassVar[int]
+    DRIFT_MS_PER_MIN_FIELD_NUMBER: _ClassVar[int]
+    JITTER_MS_FIELD_NUMBER: _ClassVar[int]
     camera: str
     known: bool
     offset_frames: float
     offset_ids: int
     confidence: float
-    def __init__(self, camera: _Optional[str] = ..., known: _Optional[bool] = ..., offset_frames: _Optional[float] = ..., offset_ids: _Optional[int] = ..., confidence: _Optional[float] = ...) -> None: ...
+    offset_ms: float
+    drift_ms_per_min: float
+    jitter_ms: float
+    def __init__(self, camera: _Optional[str] = ..., known: _Optional[bool] = ..., offset_frames: _Optional[float] = ..., offset_ids: _Optional[int] = ..., confidence: _Optional[float] = ..., offset_ms: _Optional[float] = ..., drift_ms_per_min: _Optional[float] = ..., jitter_ms: _Optional[float] = ...) -> None: ...
