@@ -11,6 +11,8 @@
 //! `2026-12-06T00:00:00Z + k / fps`; camera `c` stamps it `+ offset_c + drift_c · t + jitter`,
 //! jitter uniform in ±`--jitter` periods.
 //!
+//! "after" scores the frames from the first loop start after the last misplaced batch.
+//!
 //! Usage: capture_times --model M.onnx --data REC.jsonl [--offsets-ms CAM:MS,...]
 //!        [--drift CAM:MS_PER_MIN] [--jitter 0.2] [--declare] [--auto-align] [--ids]
 //!        [--loops N] [--rate FRAMES_PER_S] [--watch-window N] [--watch-interval-ms MS]
@@ -113,6 +115,7 @@ async fn main() -> anyhow::Result<()> {
     let decl = format!("{}={}@{fps}fps", rec.scene.name, cams.join(","));
     let rec_dir = tempfile::tempdir()?;
     let dir = rec_dir.path().to_path_buf();
+    let record_dir = dir.clone();
     let spec = ModelSpec::parse(&format!("{}={}", rec.scene.name, args.model.display()))?;
     let (window, interval, align) = (
         args.watch_window,
@@ -129,10 +132,20 @@ async fn main() -> anyhow::Result<()> {
             ..ClockWatchConfig::default()
         };
         c.scenes = vec![SceneDecl::parse(&decl).expect("scene")];
-        c.record = Some(RecordConfig::new(&dir));
+        c.record = Some(RecordConfig::new(&record_dir));
     })
     .await;
+    // Read while pushing: a subscriber that stops reading is dropped by the server.
     let mut results = server.subscribe(&rec.scene.name).await;
+    let reader = tokio::spawn(async move {
+        let mut got: BTreeMap<u64, pb::FrameResult> = BTreeMap::new();
+        while let Ok(Some(r)) = tokio::time::timeout(Duration::from_secs(8), results.next()).await
+        {
+            let r = r?;
+            got.insert(r.frame_id, r);
+        }
+        anyhow::Ok(got)
+    });
     let http = reqwest::Client::new();
     let url = server.url(&format!("/v1/scenes/{}/batches", rec.scene.name));
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
@@ -173,11 +186,7 @@ async fn main() -> anyhow::Result<()> {
         tokio::time::sleep(pace).await;
     }
     // Every frame's result (the last ones after the sync timeout).
-    let mut got: BTreeMap<u64, pb::FrameResult> = BTreeMap::new();
-    while let Ok(Some(r)) = tokio::time::timeout(Duration::from_secs(8), results.next()).await {
-        let r = r?;
-        got.insert(r.frame_id, r);
-    }
+    let got = reader.await??;
     let aligned = server
         .get_json(&format!("/v1/scenes/{}", rec.scene.name))
         .await;
@@ -186,7 +195,7 @@ async fn main() -> anyhow::Result<()> {
         .await
         .map_err(|e| anyhow::anyhow!("shutdown: {e:?}"))?;
     let placed = recorded_frames(&dir, &names)?;
-    let report = score(&frames, &names, &origin, &placed, &got, args.ids)?;
+    let report = score(&frames, &names, &origin, &placed, &got, args.ids, rec.frames.len())?;
     println!(
         "{}",
         serde_json::json!({
@@ -240,6 +249,7 @@ fn score(
     placed: &HashMap<(u64, usize), i64>,
     got: &BTreeMap<u64, pb::FrameResult>,
     ids: bool,
+    loop_len: usize,
 ) -> anyhow::Result<serde_json::Value> {
     // Per served frame and camera, the run frame its batch was captured in.
     let mut from: HashMap<(u64, usize), u64> = HashMap::new();
@@ -258,17 +268,28 @@ fn score(
     for (&(f, _), &k) in &from {
         *shifts.entry(f as i64 - k as i64).or_default() += 1;
     }
-    let shift = shifts.iter().max_by_key(|(_, &v)| v).map_or(0, |(&s, _)| s);
+    let shift = shifts
+        .iter()
+        .max_by_key(|&(_, &v)| v)
+        .map_or(0, |(&s, _)| s);
     let misplaced: Vec<u64> = {
         let mut v: Vec<u64> = from
             .iter()
-            .filter(|(&(f, _), &k)| f as i64 - k as i64 != shift)
+            .filter(|&(&(f, _), &k)| f as i64 - k as i64 != shift)
             .map(|(_, &k)| k)
             .collect();
         v.sort_unstable();
         v
     };
-    let settled = misplaced.last().map_or(0, |&k| k + 1);
+    // Scored after the last misplaced batch, from a loop's start (whole loops compare with one
+    // loop of the frame-id path).
+    let settled = misplaced.last().map_or(0, |&k| {
+        if frames.len() > loop_len {
+            (k + 1).div_ceil(loop_len as u64) * loop_len as u64
+        } else {
+            k + 1
+        }
+    });
     let mut unlabelled = 1u64 << 62;
     let (mut records, mut after) = (Vec::new(), Vec::new());
     for (&f, r) in got {

@@ -13,7 +13,7 @@
 //! [`PhaseTracker`] follows one camera's timing from its capture times alone: where within the
 //! period its captures fall (its *phase*, a sub-frame clock offset), how fast that moves (a
 //! clock that gains or loses: *drift*) and how much single captures scatter (*jitter*): a
-//! least-squares line through the last [`PhaseTracker::CAPACITY`] captures.
+//! line through the circular means of its recent captures.
 use std::collections::VecDeque;
 
 use serde::de::{self, Deserializer, Visitor};
@@ -207,12 +207,36 @@ impl Ticks {
 }
 
 /// One camera's timing, followed from its capture times (see the module docs).
-#[derive(Debug, Clone, Default)]
+///
+/// Each capture gives a phase modulo the period. The tracker never unwraps single captures
+/// against its own running estimate: with a jitter near half a period that feeds back (an
+/// estimate a little off wraps the far captures to the wrong side, which pulls it further
+/// off). It takes [`Self::BLOCK`] captures at a time and places them on the circle where they
+/// gather most tightly (the cut of the circle that gives them the least variance: their
+/// intrinsic mean, whatever any estimate says), unwraps those block means (consecutive blocks
+/// differ by a drift of milliseconds, never by half a period) and fits a line through the last
+/// [`Self::BLOCKS`] of them: the phase now, its drift and, from each block's spread, the jitter.
+#[derive(Debug, Clone)]
 pub struct PhaseTracker {
-    /// (capture time in seconds since the first one, phase in ms), oldest first.
-    points: VecDeque<(f64, f64)>,
-    /// The first capture time seen (nanoseconds), the origin of `points`' times.
+    period_ms: f64,
+    /// The block being filled: (capture time in seconds since `origin`, phase in `[0, P)`).
+    block: Vec<(f64, f64)>,
+    /// Completed blocks, oldest first, their phases unwrapped.
+    blocks: VecDeque<BlockMean>,
+    /// The first capture time seen (nanoseconds), the origin of the blocks' times.
     origin: Option<i64>,
+    /// The first capture's phase as given: the branch the phase is unwrapped near.
+    anchor: f64,
+    /// The newest capture time, seconds since `origin`.
+    newest: f64,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct BlockMean {
+    t: f64,
+    phase: f64,
+    /// Variance of its captures' phases about `phase`, ms².
+    var: f64,
 }
 
 /// What a [`PhaseTracker`] knows of its camera now.
@@ -223,85 +247,161 @@ pub struct Timing {
     pub phase_ms: f64,
     /// How fast the phase moves, in ms per minute (a clock that gains: positive).
     pub drift_ms_per_min: f64,
-    /// Standard deviation of single captures about the line, in ms.
+    /// Standard deviation of single captures about it, in ms.
     pub jitter_ms: f64,
-    /// Captures the line was fitted to.
+    /// Captures it rests on.
     pub captures: usize,
 }
 
 impl PhaseTracker {
-    /// Captures kept (the line's window: at 10 frames/s, 51 s).
-    pub const CAPACITY: usize = 512;
-    /// Captures needed before a [`Timing`] is given (the first capture places the phase: a
-    /// camera's numbering of ticks is fixed by its first batch, the rest refine it).
-    pub const MIN_CAPTURES: usize = 1;
+    /// Captures per block.
+    pub const BLOCK: usize = 32;
+    /// Blocks the line is fitted to (2,048 captures: at 10 frames/s, 3.4 min; a step in a
+    /// camera's clock is followed within about half that).
+    pub const BLOCKS: usize = 64;
 
-    /// A tracker that has seen nothing.
-    pub fn new() -> Self {
-        Self::default()
+    /// A tracker for a scene of period `period_ms` that has seen nothing.
+    pub fn new(period_ms: f64) -> Self {
+        PhaseTracker {
+            period_ms,
+            block: Vec::with_capacity(Self::BLOCK),
+            blocks: VecDeque::new(),
+            origin: None,
+            anchor: 0.0,
+            newest: 0.0,
+        }
     }
 
-    /// Records a capture at `t_ns` whose phase is `phase_ms` (the camera's applied sub-frame
-    /// offset plus the capture's residual from its tick: a value near the current phase, so a
-    /// phase that drifts past the period is followed without wrapping).
+    /// Records a capture at `t_ns` whose phase is `phase_ms` (any branch: it is taken modulo
+    /// the period). Captures older than the newest are left out.
     pub fn observe(&mut self, t_ns: i64, phase_ms: f64) {
-        if !phase_ms.is_finite() {
+        if !phase_ms.is_finite() || !(self.period_ms > 0.0) {
             return;
         }
-        let origin = *self.origin.get_or_insert(t_ns);
-        let t = (t_ns.saturating_sub(origin)) as f64 / 1e9;
-        if self.points.back().is_some_and(|&(last, _)| t < last) {
-            // Out of order: the line's window stays ordered.
-            return;
+        let origin = *self.origin.get_or_insert_with(|| {
+            self.anchor = phase_ms;
+            t_ns
+        });
+        let t = t_ns.saturating_sub(origin) as f64 / 1e9;
+        if !self.block.is_empty() || !self.blocks.is_empty() {
+            if t < self.newest {
+                return;
+            }
         }
-        self.points.push_back((t, phase_ms));
-        if self.points.len() > Self::CAPACITY {
-            self.points.pop_front();
+        self.newest = t;
+        self.block.push((t, phase_ms.rem_euclid(self.period_ms)));
+        if self.block.len() == Self::BLOCK {
+            let mean = self.block_mean(&self.block);
+            self.blocks.push_back(mean);
+            if self.blocks.len() > Self::BLOCKS {
+                self.blocks.pop_front();
+            }
+            self.block.clear();
+        }
+    }
+
+    /// The captures' intrinsic mean on the circle (see the type's docs), unwrapped near the
+    /// last block's phase (or the anchor), with their mean time and variance.
+    fn block_mean(&self, captures: &[(f64, f64)]) -> BlockMean {
+        let p = self.period_ms;
+        let n = captures.len().max(1) as f64;
+        let mut phases: Vec<f64> = captures.iter().map(|&(_, ph)| ph).collect();
+        phases.sort_by(f64::total_cmp);
+        // Cutting the circle before sorted capture `j` puts the ones before it a period up.
+        let (sum, sq): (f64, f64) = phases.iter().fold((0.0, 0.0), |(a, b), &x| (a + x, b + x * x));
+        let (mut best_mean, mut best_var) = (sum / n, sq / n - (sum / n).powi(2));
+        let (mut s, mut q) = (sum, sq);
+        for &x in &phases[..phases.len().saturating_sub(1)] {
+            s += p;
+            q += 2.0 * x * p + p * p;
+            let mean = s / n;
+            let var = q / n - mean * mean;
+            if var < best_var {
+                (best_mean, best_var) = (mean, var);
+            }
+        }
+        let t = captures.iter().map(|&(t, _)| t).sum::<f64>() / n;
+        // Near where the earlier blocks' line puts it (one stray block cannot carry the branch
+        // off), or the last block's, or the first capture's.
+        let near = if self.blocks.len() >= 2 {
+            let (slope, at) = line(&self.blocks);
+            at + slope * (t - self.blocks.back().map_or(t, |m| m.t))
+        } else {
+            self.blocks.back().map_or(self.anchor, |m| m.phase)
+        };
+        BlockMean {
+            t,
+            phase: best_mean + p * ((near - best_mean) / p).round(),
+            var: best_var.max(0.0) * n / (n - 1.0).max(1.0),
         }
     }
 
     /// True before the first capture.
     pub fn is_empty(&self) -> bool {
-        self.points.is_empty()
+        self.origin.is_none()
     }
 
     /// Forgets every capture (the camera's clock changed).
     pub fn reset(&mut self) {
-        self.points.clear();
-        self.origin = None;
+        *self = PhaseTracker::new(self.period_ms);
     }
 
-    /// The camera's timing now, once [`Self::MIN_CAPTURES`] captures were seen.
+    /// The camera's timing now, once it sent a capture.
     pub fn timing(&self) -> Option<Timing> {
-        let n = self.points.len();
-        if n < Self::MIN_CAPTURES {
+        if self.is_empty() {
             return None;
         }
-        let nf = n as f64;
-        let (mt, mp) = self
-            .points
+        let captures = self.blocks.len() * Self::BLOCK + self.block.len();
+        let (phase, slope) = if self.blocks.len() >= 2 {
+            let (slope, at) = line(&self.blocks);
+            let last = self.blocks.back().map_or(0.0, |m| m.t);
+            (at + slope * (self.newest - last), slope)
+        } else {
+            // Too few blocks for a line: the mean of every capture so far (a first block's and
+            // the partial one's, weighted by their captures).
+            let partial = (!self.block.is_empty()).then(|| self.block_mean(&self.block).phase);
+            let phase = match (self.blocks.front(), partial) {
+                (Some(m), Some(b)) => {
+                    let (w0, w1) = (Self::BLOCK as f64, self.block.len() as f64);
+                    (m.phase * w0 + b * w1) / (w0 + w1)
+                }
+                (Some(m), None) => m.phase,
+                (None, Some(b)) => b,
+                (None, None) => self.anchor,
+            };
+            (phase, 0.0)
+        };
+        let vars: Vec<f64> = self
+            .blocks
             .iter()
-            .fold((0.0, 0.0), |(a, b), &(t, p)| (a + t / nf, b + p / nf));
-        let (mut stt, mut stp) = (0.0, 0.0);
-        for &(t, p) in &self.points {
-            stt += (t - mt) * (t - mt);
-            stp += (t - mt) * (p - mp);
-        }
-        // Seconds: a span under a second says nothing of drift.
-        let slope = if stt > 1.0 { stp / stt } else { 0.0 };
-        let sse: f64 = self
-            .points
-            .iter()
-            .map(|&(t, p)| (p - mp - slope * (t - mt)).powi(2))
-            .sum();
-        let newest = self.points.back().map_or(0.0, |&(t, _)| t);
+            .map(|m| m.var)
+            .chain((self.block.len() >= 2).then(|| self.block_mean(&self.block).var))
+            .collect();
+        let jitter = (vars.iter().sum::<f64>() / vars.len().max(1) as f64).sqrt();
         Some(Timing {
-            phase_ms: mp + slope * (newest - mt),
+            phase_ms: phase,
             drift_ms_per_min: slope * 60.0,
-            jitter_ms: (sse / (nf - 1.0).max(1.0)).sqrt(),
-            captures: n,
+            jitter_ms: jitter,
+            captures,
         })
     }
+}
+
+/// Least-squares line through the blocks' phases: (slope in ms per second, the line's value
+/// at the newest block).
+fn line(blocks: &VecDeque<BlockMean>) -> (f64, f64) {
+    let n = blocks.len() as f64;
+    let (mt, mp) = blocks
+        .iter()
+        .fold((0.0, 0.0), |(a, b), m| (a + m.t / n, b + m.phase / n));
+    let (mut stt, mut stp) = (0.0, 0.0);
+    for m in blocks {
+        stt += (m.t - mt) * (m.t - mt);
+        stp += (m.t - mt) * (m.phase - mp);
+    }
+    let slope = if stt > 0.0 { stp / stt } else { 0.0 };
+    let newest = blocks.back().map_or(mt, |m| m.t);
+    (slope, mp + slope * (newest - mt))
 }
 
 /// One camera's clock offset in milliseconds, for capture times: declared (fixed), or followed
@@ -311,7 +411,8 @@ impl PhaseTracker {
 pub struct CameraPhase {
     declared_ms: Option<f64>,
     phase_ms: f64,
-    tracker: PhaseTracker,
+    /// Made at the first capture (it needs the scene's period).
+    tracker: Option<PhaseTracker>,
 }
 
 /// A capture placed on a scene's clock by [`CameraPhase::place`].
@@ -325,6 +426,7 @@ pub struct Placement {
     /// [`CameraPhase::accept`] follows.
     observed_ms: f64,
     time_ns: i64,
+    period_ms: f64,
 }
 
 impl CameraPhase {
@@ -334,7 +436,7 @@ impl CameraPhase {
         CameraPhase {
             declared_ms,
             phase_ms: declared_ms.unwrap_or(0.0),
-            tracker: PhaseTracker::new(),
+            tracker: None,
         }
     }
 
@@ -346,7 +448,7 @@ impl CameraPhase {
     /// Whether the offset is known: declared, or placed by a first capture. Before, a
     /// capture's distance from its tick says nothing (it places the phase).
     pub fn known(&self) -> bool {
-        self.declared_ms.is_some() || !self.tracker.is_empty()
+        self.declared_ms.is_some() || self.tracker.is_some()
     }
 
     /// The tick of a capture at `time` on `ticks`, less the offset applied now; `None` before
@@ -360,14 +462,18 @@ impl CameraPhase {
             residual_ms,
             observed_ms: self.phase_ms + residual_ms,
             time_ns: t,
+            period_ms: ticks.period_ns() / 1e6,
         })
     }
 
     /// Follows an accepted capture: an undeclared offset moves to the tracker's phase.
     pub fn accept(&mut self, p: &Placement) {
-        self.tracker.observe(p.time_ns, p.observed_ms);
+        let tracker = self
+            .tracker
+            .get_or_insert_with(|| PhaseTracker::new(p.period_ms));
+        tracker.observe(p.time_ns, p.observed_ms);
         if self.declared_ms.is_none()
-            && let Some(t) = self.tracker.timing()
+            && let Some(t) = tracker.timing()
         {
             self.phase_ms = t.phase_ms;
         }
@@ -375,7 +481,7 @@ impl CameraPhase {
 
     /// What the captures say of the camera's clock (its measured phase, drift and jitter).
     pub fn timing(&self) -> Option<Timing> {
-        self.tracker.timing()
+        self.tracker.as_ref()?.timing()
     }
 }
 
@@ -430,20 +536,36 @@ mod tests {
     fn the_tracker_follows_phase_drift_and_jitter() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
-        let mut tr = PhaseTracker::new();
+        let mut tr = PhaseTracker::new(100.0);
         assert!(tr.timing().is_none());
-        // 10 frames/s, phase 30 ms drifting 20 ms/min, jitter uniform ±40 ms (sd 23 ms).
+        // 10 frames/s, phase 30 ms drifting 20 ms/min (200 ms, two periods, in 10 min),
+        // jitter uniform ±40 ms (sd 23 ms); each capture's phase given wrapped to ±50 ms, as
+        // a camera's residual from its nearest tick comes.
+        let wrap = |p: f64| (p + 50.0).rem_euclid(100.0) - 50.0;
         for k in 0..6000i64 {
             let t = k * 100_000_000;
             let phase = 30.0 + 20.0 * (t as f64 / 60e9) + rng.random_range(-40.0..40.0);
-            tr.observe(t, phase);
+            tr.observe(t, wrap(phase));
+            if k % 500 == 499 {
+                // Followed all along, never run away (the branch is the first capture's).
+                let tm = tr.timing().unwrap();
+                let truth = 30.0 + 20.0 * (k as f64 * 0.1 / 60.0);
+                assert!(wrap(tm.phase_ms - truth).abs() < 10.0, "{k}: {tm:?} vs {truth}");
+                if k >= 1999 {
+                    assert!((tm.drift_ms_per_min - 20.0).abs() < 5.0, "{k}: {tm:?}");
+                }
+            }
         }
         let tm = tr.timing().unwrap();
         let truth = 30.0 + 20.0 * (5999.0 * 0.1 / 60.0);
-        assert!((tm.phase_ms - truth).abs() < 5.0, "{tm:?} vs {truth}");
-        assert!((tm.drift_ms_per_min - 20.0).abs() < 8.0, "{tm:?}");
-        assert!((tm.jitter_ms - 23.1).abs() < 3.0, "{tm:?}");
-        assert_eq!(tm.captures, PhaseTracker::CAPACITY);
+        assert!(wrap(tm.phase_ms - truth).abs() < 3.0, "{tm:?} vs {truth}");
+        // Unwrapped: two periods later, the phase ran on continuously.
+        assert!((tm.phase_ms - tr.timing().unwrap().phase_ms).abs() < 1e-9);
+        assert!((tm.jitter_ms - 23.1).abs() < 2.0, "{tm:?}");
+        assert_eq!(
+            tm.captures,
+            PhaseTracker::BLOCK * PhaseTracker::BLOCKS + 6000 % PhaseTracker::BLOCK
+        );
         tr.reset();
         assert!(tr.timing().is_none());
     }
