@@ -8,6 +8,7 @@ use clap::Args;
 use serde::Serialize;
 
 use crossview_core::association::embed_frame;
+use crossview_core::capture::{PhaseTracker, Timing};
 use crossview_core::offsets::{
     CameraSeries, OffsetConfig, OffsetEstimate, PairProfile, camera_pairs, frame_step, profile,
     solve,
@@ -75,6 +76,46 @@ struct CameraRow<'a> {
     #[serde(flatten)]
     offset: &'a crossview_core::offsets::CameraOffset,
     seconds: Option<f64>,
+    /// A camera whose batches carry capture times: its clock in milliseconds (the whole
+    /// frames found, times the period, plus where within the period its captures fall), the
+    /// drift and the jitter of its times ([`crossview_core::capture`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    capture: Option<CaptureClock>,
+}
+
+#[derive(Serialize, Clone, Copy)]
+struct CaptureClock {
+    offset_ms: Option<f64>,
+    phase_ms: f64,
+    drift_ms_per_min: Option<f64>,
+    jitter_ms: f64,
+    captures: usize,
+}
+
+/// Each camera's timing from its batches' capture times (none without times or a rate).
+fn capture_timing(
+    data: &[PathBuf],
+    scene: &SceneSpec,
+    fps: Option<f64>,
+) -> anyhow::Result<Vec<Option<Timing>>> {
+    let n = scene.cameras.len();
+    let Some(period_ms) = fps.map(|f| 1e3 / f) else {
+        return Ok(vec![None; n]);
+    };
+    let mut trackers = vec![PhaseTracker::new(period_ms); n];
+    for file in crossview_data::recording_files(data)? {
+        for batch in crossview_data::RecordingReader::open(&file)? {
+            let batch = batch?;
+            let (Some(t), Ok(c)) = (batch.time, scene.camera_index(&batch.camera)) else {
+                continue;
+            };
+            // The residual from the nearest tick, as the reader placed the camera's first batch
+            // (its phase follows on from that branch, as the reader's did).
+            let ms = t.unix_nanos() as f64 / 1e6;
+            trackers[c].observe(t.unix_nanos(), ms - period_ms * (ms / period_ms).round());
+        }
+    }
+    Ok(trackers.iter().map(PhaseTracker::timing).collect())
 }
 
 /// Runs `crossview sync-check`.
@@ -112,6 +153,10 @@ pub fn run(args: SyncCheckArgs) -> anyhow::Result<()> {
     )?;
     let scene = &recording.scene;
     let fps = args.fps.or(recording.fps);
+    let timing = capture_timing(&args.data, scene, fps)?;
+    let reference_ms = timing[estimate.reference]
+        .zip(fps)
+        .map(|(t, fps)| scene.cameras[estimate.reference].offset as f64 * 1e3 / fps + t.phase_ms);
     let report = Report {
         scene: &scene.name,
         frames: recording.frames.len(),
@@ -128,6 +173,17 @@ pub fn run(args: SyncCheckArgs) -> anyhow::Result<()> {
                     .refined
                     .zip(fps)
                     .map(|(r, fps)| f64::from(r) / step as f64 / fps),
+                capture: timing[c.camera].zip(fps).map(|(t, fps)| CaptureClock {
+                    // Relative to the reference camera, as the frame offsets are.
+                    offset_ms: c.frames.zip(reference_ms).map(|(f, r)| {
+                        let whole = scene.cameras[c.camera].offset + f / step.max(1);
+                        whole as f64 * 1e3 / fps + t.phase_ms - r
+                    }),
+                    phase_ms: t.phase_ms,
+                    drift_ms_per_min: t.drift_ms_per_min,
+                    jitter_ms: t.jitter_ms,
+                    captures: t.captures,
+                }),
             })
             .collect(),
         pairs: &estimate.pairs,
@@ -341,6 +397,25 @@ fn table(r: &Report, max_offset: u32) -> String {
                     _ => "no confident pair: no overlap with another camera, or nobody moved",
                 }
             )),
+        }
+    }
+    if r.cameras.iter().any(|c| c.capture.is_some()) {
+        out.push_str(&format!(
+            "capture times:\n{:<16} {:>10} {:>9} {:>11} {:>9}\n",
+            "camera", "offset ms", "phase ms", "drift ms/min", "jitter ms"
+        ));
+        for c in &r.cameras {
+            if let Some(k) = c.capture {
+                out.push_str(&format!(
+                    "{:<16} {:>10} {:>+9.1} {:>11} {:>9.1}\n",
+                    c.name,
+                    k.offset_ms.map_or("unknown".into(), |o| format!("{o:+.1}")),
+                    k.phase_ms,
+                    k.drift_ms_per_min
+                        .map_or("-".into(), |d| format!("{d:+.1}")),
+                    k.jitter_ms
+                ));
+            }
         }
     }
     let used = r.pairs.iter().filter(|p| p.used).count();

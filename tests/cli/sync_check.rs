@@ -175,3 +175,49 @@ fn an_ensemble_is_estimated_by_its_leading_member_alone() {
         }
     }
 }
+
+#[test]
+fn a_recording_of_capture_times_is_grouped_by_them_and_its_clocks_read_in_milliseconds() {
+    use rand::{Rng, SeedableRng};
+    let dir = tempfile::tempdir().unwrap();
+    let rec = simulate(dir.path());
+    // The same frames as the cameras' capture times would stamp them: cam1's clock 230 ms
+    // ahead, cam2's 120 ms behind, every capture ±20 ms; no frame ids.
+    let clock = [0.0, 0.230, -0.120, 0.0];
+    let mut rng = rand::rngs::StdRng::seed_from_u64(9);
+    let text = std::fs::read_to_string(&rec).unwrap();
+    let mut out = String::new();
+    for (i, line) in text.lines().enumerate() {
+        let mut v: Value = serde_json::from_str(line).unwrap();
+        if i > 0 {
+            let k = v["frame_id"].as_u64().unwrap() as f64;
+            let c: usize = v["camera"].as_str().unwrap()[3..].parse().unwrap();
+            let t = 1_796_515_200.0 + k / 10.0 + clock[c] + rng.random_range(-0.02..0.02);
+            let o = v.as_object_mut().unwrap();
+            o.remove("frame_id");
+            o.insert("time".into(), serde_json::json!(t));
+        }
+        out.push_str(&v.to_string());
+        out.push('\n');
+    }
+    let timed = dir.path().join("times.jsonl");
+    std::fs::write(&timed, out).unwrap();
+    let report = check(timed.to_str().unwrap(), &[]);
+    let reference = report["reference"].as_str().unwrap();
+    let at = |name: &str| 1e3 * clock[name[3..].parse::<usize>().unwrap()];
+    for c in report["cameras"].as_array().unwrap() {
+        let name = c["name"].as_str().unwrap();
+        let k = &c["capture"];
+        let got = k["offset_ms"]
+            .as_f64()
+            .unwrap_or_else(|| panic!("{report}"));
+        let want = at(name) - at(reference);
+        assert!(
+            (got - want).abs() < 15.0,
+            "{name}: {got} ms, not {want}: {report}"
+        );
+        // Uniform ±20 ms: a standard deviation of 11.5 ms.
+        let jitter = k["jitter_ms"].as_f64().unwrap();
+        assert!((jitter - 11.5).abs() < 3.0, "{name}: jitter {jitter}");
+    }
+}

@@ -139,8 +139,7 @@ async fn main() -> anyhow::Result<()> {
     let mut results = server.subscribe(&rec.scene.name).await;
     let reader = tokio::spawn(async move {
         let mut got: BTreeMap<u64, pb::FrameResult> = BTreeMap::new();
-        while let Ok(Some(r)) = tokio::time::timeout(Duration::from_secs(8), results.next()).await
-        {
+        while let Ok(Some(r)) = tokio::time::timeout(Duration::from_secs(8), results.next()).await {
             let r = r?;
             got.insert(r.frame_id, r);
         }
@@ -195,7 +194,15 @@ async fn main() -> anyhow::Result<()> {
         .await
         .map_err(|e| anyhow::anyhow!("shutdown: {e:?}"))?;
     let placed = recorded_frames(&dir, &names)?;
-    let report = score(&frames, &names, &origin, &placed, &got, args.ids, rec.frames.len())?;
+    let report = score(
+        &frames,
+        &names,
+        &origin,
+        &placed,
+        &got,
+        args.ids,
+        rec.frames.len(),
+    )?;
     println!(
         "{}",
         serde_json::json!({

@@ -245,8 +245,9 @@ pub struct Timing {
     /// Where the camera's captures fall within the period at the newest capture, in ms (its
     /// sub-frame offset; not wrapped: a drifting clock's phase runs on past the period).
     pub phase_ms: f64,
-    /// How fast the phase moves, in ms per minute (a clock that gains: positive).
-    pub drift_ms_per_min: f64,
+    /// How fast the phase moves, in ms per minute (a clock that gains: positive); `None`
+    /// before [`PhaseTracker::LINE_BLOCKS`] blocks (a shorter span says nothing of drift).
+    pub drift_ms_per_min: Option<f64>,
     /// Standard deviation of single captures about it, in ms.
     pub jitter_ms: f64,
     /// Captures it rests on.
@@ -259,6 +260,8 @@ impl PhaseTracker {
     /// Blocks the line is fitted to (2,048 captures: at 10 frames/s, 3.4 min; a step in a
     /// camera's clock is followed within about half that).
     pub const BLOCKS: usize = 64;
+    /// Blocks needed before the phase follows a line (a drift) rather than their mean.
+    pub const LINE_BLOCKS: usize = 4;
 
     /// A tracker for a scene of period `period_ms` that has seen nothing.
     pub fn new(period_ms: f64) -> Self {
@@ -308,7 +311,9 @@ impl PhaseTracker {
         let mut phases: Vec<f64> = captures.iter().map(|&(_, ph)| ph).collect();
         phases.sort_by(f64::total_cmp);
         // Cutting the circle before sorted capture `j` puts the ones before it a period up.
-        let (sum, sq): (f64, f64) = phases.iter().fold((0.0, 0.0), |(a, b), &x| (a + x, b + x * x));
+        let (sum, sq): (f64, f64) = phases
+            .iter()
+            .fold((0.0, 0.0), |(a, b), &x| (a + x, b + x * x));
         let (mut best_mean, mut best_var) = (sum / n, sq / n - (sum / n).powi(2));
         let (mut s, mut q) = (sum, sq);
         for &x in &phases[..phases.len().saturating_sub(1)] {
@@ -323,7 +328,7 @@ impl PhaseTracker {
         let t = captures.iter().map(|&(t, _)| t).sum::<f64>() / n;
         // Near where the earlier blocks' line puts it (one stray block cannot carry the branch
         // off), or the last block's, or the first capture's.
-        let near = if self.blocks.len() >= 2 {
+        let near = if self.blocks.len() >= Self::LINE_BLOCKS {
             let (slope, at) = line(&self.blocks);
             at + slope * (t - self.blocks.back().map_or(t, |m| m.t))
         } else {
@@ -352,24 +357,20 @@ impl PhaseTracker {
             return None;
         }
         let captures = self.blocks.len() * Self::BLOCK + self.block.len();
-        let (phase, slope) = if self.blocks.len() >= 2 {
+        let (phase, slope) = if self.blocks.len() >= Self::LINE_BLOCKS {
             let (slope, at) = line(&self.blocks);
             let last = self.blocks.back().map_or(0.0, |m| m.t);
-            (at + slope * (self.newest - last), slope)
+            (at + slope * (self.newest - last), Some(slope))
         } else {
-            // Too few blocks for a line: the mean of every capture so far (a first block's and
+            // Too few blocks for a line: the mean of every capture so far (the blocks' and
             // the partial one's, weighted by their captures).
             let partial = (!self.block.is_empty()).then(|| self.block_mean(&self.block).phase);
-            let phase = match (self.blocks.front(), partial) {
-                (Some(m), Some(b)) => {
-                    let (w0, w1) = (Self::BLOCK as f64, self.block.len() as f64);
-                    (m.phase * w0 + b * w1) / (w0 + w1)
-                }
-                (Some(m), None) => m.phase,
-                (None, Some(b)) => b,
-                (None, None) => self.anchor,
-            };
-            (phase, 0.0)
+            let full = self.blocks.iter().map(|m| (m.phase, Self::BLOCK as f64));
+            let part = partial.map(|b| (b, self.block.len() as f64));
+            let (sum, w) = full
+                .chain(part)
+                .fold((0.0, 0.0), |(s, w), (p, n)| (s + p * n, w + n));
+            (if w > 0.0 { sum / w } else { self.anchor }, None)
         };
         let vars: Vec<f64> = self
             .blocks
@@ -380,7 +381,7 @@ impl PhaseTracker {
         let jitter = (vars.iter().sum::<f64>() / vars.len().max(1) as f64).sqrt();
         Some(Timing {
             phase_ms: phase,
-            drift_ms_per_min: slope * 60.0,
+            drift_ms_per_min: slope.map(|s| s * 60.0),
             jitter_ms: jitter,
             captures,
         })
@@ -550,9 +551,13 @@ mod tests {
                 // Followed all along, never run away (the branch is the first capture's).
                 let tm = tr.timing().unwrap();
                 let truth = 30.0 + 20.0 * (k as f64 * 0.1 / 60.0);
-                assert!(wrap(tm.phase_ms - truth).abs() < 10.0, "{k}: {tm:?} vs {truth}");
+                assert!(
+                    wrap(tm.phase_ms - truth).abs() < 10.0,
+                    "{k}: {tm:?} vs {truth}"
+                );
                 if k >= 1999 {
-                    assert!((tm.drift_ms_per_min - 20.0).abs() < 5.0, "{k}: {tm:?}");
+                    let drift = tm.drift_ms_per_min.unwrap();
+                    assert!((drift - 20.0).abs() < 5.0, "{k}: {tm:?}");
                 }
             }
         }

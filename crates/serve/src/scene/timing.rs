@@ -227,21 +227,34 @@ impl Timing {
     }
 
     /// Adds each camera's clock in milliseconds to the watch's `estimate`, for a scene fed
-    /// capture times (`applied`: the whole-frame offsets applied now): the offset is the whole
-    /// frames applied and found by the watch, times the period, plus the camera's phase; with
-    /// its drift and jitter. A camera with too few captures yet is left as it is.
+    /// capture times (`applied`: the whole-frame offsets applied now): the offset, relative to
+    /// the estimate's reference camera as the frame offsets are, is the whole frames applied
+    /// and found by the watch, times the period, plus where within the period the camera's
+    /// captures fall; with its drift and jitter. A camera with too few captures yet is left as
+    /// it is; one whose whole frames the watch does not know gets no offset.
     pub(super) fn fill(&self, estimate: &mut ClockEstimate, applied: &[i64]) {
         let (Some(ticks), true) = (self.ticks, self.timed()) else {
             return;
         };
         let period_ms = ticks.period_ns() / 1e6;
-        for ((out, clock), &whole) in estimate.cameras.iter_mut().zip(&self.cameras).zip(applied) {
-            let Some(t) = clock.phase.timing() else {
+        let total = |c: usize, found: Option<i64>| {
+            let t = self.cameras[c].phase.timing()?;
+            let frames = applied.get(c)?.saturating_add(found?);
+            Some(frames as f64 * period_ms + t.phase_ms)
+        };
+        let reference = estimate
+            .cameras
+            .iter()
+            .position(|c| c.camera == estimate.reference)
+            .and_then(|r| total(r, Some(0)));
+        for (c, out) in estimate.cameras.iter_mut().enumerate() {
+            let Some(t) = self.cameras.get(c).and_then(|k| k.phase.timing()) else {
                 continue;
             };
-            let frames = whole.saturating_add(out.offset_ids.unwrap_or(0));
-            out.offset_ms = Some(frames as f64 * period_ms + t.phase_ms);
-            out.drift_ms_per_min = Some(t.drift_ms_per_min);
+            out.offset_ms = total(c, out.offset_ids)
+                .zip(reference)
+                .map(|(own, r)| own - r);
+            out.drift_ms_per_min = t.drift_ms_per_min;
             out.jitter_ms = Some(t.jitter_ms);
         }
     }
