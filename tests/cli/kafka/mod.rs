@@ -8,9 +8,11 @@
 //! coming back mid-stream and mid-frame lose no camera batch), [`outage`] (a broker down at
 //! start or gone mid-stream: not ready meanwhile, nothing lost), [`stream_time`] (a frame waits
 //! on the stream, not the wall clock: a paused replica cuts no frame, a camera that stops
-//! still yields partial frames, producers' clocks that are off cut nothing).
+//! still yields partial frames, producers' clocks that are off cut nothing), [`capture_times`]
+//! (batches stamped with capture times, in the value or the record, go to their tick).
 
 mod basic;
+mod capture_times;
 mod outage;
 mod rebalance;
 mod stream_time;

@@ -5,6 +5,7 @@ use rdkafka::message::Message;
 use crossview_api::convert::{batch_from_pb, result_to_pb};
 use crossview_api::pb;
 use crossview_core::Batch;
+use crossview_core::capture::CaptureTime;
 use prost::Message as _;
 
 use super::ValueFormat;
@@ -31,11 +32,13 @@ pub(super) fn content_type<M: Message>(msg: &M) -> Option<Result<ValueFormat>> {
 }
 
 /// A record's scene (its key) and batch (its value: a SPEC §7 batch line, or a protobuf
-/// `Batch` whose `scene`, if set, must equal the key).
+/// `Batch` whose `scene`, if set, must equal the key). With `record_time` (`--kafka-timestamp
+/// record`), a batch without a capture time takes that one.
 pub(super) fn decode(
     key: Option<&[u8]>,
     payload: Option<&[u8]>,
     format: ValueFormat,
+    record_time: Option<CaptureTime>,
 ) -> Result<(String, Batch)> {
     let scene = key
         .filter(|k| !k.is_empty())
@@ -44,11 +47,20 @@ pub(super) fn decode(
         .map_err(|_| Error::invalid("key", "the scene name is not UTF-8"))?
         .to_string();
     let value = payload.ok_or_else(|| Error::invalid("value", "empty record"))?;
-    let batch = match format {
-        ValueFormat::Json => {
-            serde_json::from_slice(value).map_err(|e| Error::invalid("value", e.to_string()))?
+    let invalid = |e: serde_json::Error| Error::invalid("value", e.to_string());
+    let mut batch: Batch = match (format, record_time) {
+        (ValueFormat::Json, None) => serde_json::from_slice(value).map_err(invalid)?,
+        (ValueFormat::Json, Some(t)) => {
+            // A line without `time` (it may have no frame id either) takes the record's.
+            let mut v: serde_json::Value = serde_json::from_slice(value).map_err(invalid)?;
+            if let Some(o) = v.as_object_mut()
+                && !o.contains_key("time")
+            {
+                o.insert("time".into(), serde_json::json!(t.to_rfc3339()));
+            }
+            serde_json::from_value(v).map_err(invalid)?
         }
-        ValueFormat::Protobuf => {
+        (ValueFormat::Protobuf, _) => {
             let pb = pb::Batch::decode(value)
                 .map_err(|e| Error::invalid("value", format!("not a protobuf Batch: {e}")))?;
             if !pb.scene.is_empty() && pb.scene != scene {
@@ -64,6 +76,9 @@ pub(super) fn decode(
             batch_from_pb(pb)?.1
         }
     };
+    if batch.time.is_none() {
+        batch.time = record_time;
+    }
     Ok((scene, batch))
 }
 
@@ -145,12 +160,22 @@ mod tests {
     fn records_need_a_scene_key_and_a_batch_line() {
         let line = br#"{"camera":"c0","frame_id":3,"detections":[]}"#;
         let json = ValueFormat::Json;
-        let (scene, b) = decode(Some(b"lab"), Some(line), json).unwrap();
+        let (scene, b) = decode(Some(b"lab"), Some(line), json, None).unwrap();
         assert_eq!((scene.as_str(), b.frame_id), ("lab", 3));
-        assert!(decode(None, Some(line), json).is_err());
-        assert!(decode(Some(&[0xff]), Some(line), json).is_err());
-        assert!(decode(Some(b"lab"), Some(b"{not json"), json).is_err());
-        assert!(decode(Some(b"lab"), None, json).is_err());
+        assert!(decode(None, Some(line), json, None).is_err());
+        assert!(decode(Some(&[0xff]), Some(line), json, None).is_err());
+        assert!(decode(Some(b"lab"), Some(b"{not json"), json, None).is_err());
+        assert!(decode(Some(b"lab"), None, json, None).is_err());
+        // With the record's time: a line with neither a frame id nor a time takes it; one
+        // with its own time keeps it.
+        let t = CaptureTime::from_unix_nanos(1_796_515_200_100_000_000).unwrap();
+        let bare = br#"{"camera": "c0", "detections": []}"#;
+        assert!(decode(Some(b"lab"), Some(bare), json, None).is_err());
+        let (_, b) = decode(Some(b"lab"), Some(bare), json, Some(t)).unwrap();
+        assert_eq!((b.frame_id, b.time), (0, Some(t)));
+        let own = br#"{"camera": "c0", "time": 5.0, "detections": []}"#;
+        let (_, b) = decode(Some(b"lab"), Some(own), json, Some(t)).unwrap();
+        assert_eq!(b.time.map(CaptureTime::unix_nanos), Some(5_000_000_000));
         let p = KafkaConfig::parse_property("sasl.password=x=y").unwrap();
         assert_eq!(p, ("sasl.password".into(), "x=y".into()));
         assert!(KafkaConfig::parse_property("novalue").is_err());
@@ -169,21 +194,21 @@ mod tests {
         };
         let proto = ValueFormat::Protobuf;
         let bytes = crossview_api::convert::batch_to_pb("lab", &batch).encode_to_vec();
-        let (scene, b) = decode(Some(b"lab"), Some(&bytes), proto).unwrap();
+        let (scene, b) = decode(Some(b"lab"), Some(&bytes), proto, None).unwrap();
         assert_eq!(
             (scene.as_str(), b.camera.as_str(), b.frame_id),
             ("lab", "c0", 7)
         );
         let unnamed = crossview_api::convert::batch_to_pb("", &batch).encode_to_vec();
         assert_eq!(
-            decode(Some(b"lab"), Some(&unnamed), proto).unwrap().0,
+            decode(Some(b"lab"), Some(&unnamed), proto, None).unwrap().0,
             "lab"
         );
-        assert!(decode(Some(b"other"), Some(&bytes), proto).is_err());
-        assert!(decode(Some(b"lab"), Some(b"\xff\xff\xff"), proto).is_err());
+        assert!(decode(Some(b"other"), Some(&bytes), proto, None).is_err());
+        assert!(decode(Some(b"lab"), Some(b"\xff\xff\xff"), proto, None).is_err());
         // A JSON line read as protobuf (and the other way round) is malformed, not a panic.
         let line = br#"{"camera":"c0","frame_id":3,"detections":[]}"#;
-        assert!(decode(Some(b"lab"), Some(line), proto).is_err());
-        assert!(decode(Some(b"lab"), Some(&bytes), ValueFormat::Json).is_err());
+        assert!(decode(Some(b"lab"), Some(line), proto, None).is_err());
+        assert!(decode(Some(b"lab"), Some(&bytes), ValueFormat::Json, None).is_err());
     }
 }

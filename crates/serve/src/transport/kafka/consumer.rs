@@ -120,7 +120,11 @@ impl Kafka {
 
     async fn handle(&self, r: &Record<'_>, format: Result<ValueFormat>) -> Handled {
         let (partition, offset) = (r.partition, r.offset);
-        let (scene, mut batch) = match format.and_then(|f| decode(r.key, r.payload, f)) {
+        let record_time = (self.config.timestamps == TimestampSource::Record)
+            .then(|| r.stamp_ms?.checked_mul(1_000_000))
+            .flatten()
+            .and_then(|ns| CaptureTime::from_unix_nanos(ns).ok());
+        let (scene, batch) = match format.and_then(|f| decode(r.key, r.payload, f, record_time)) {
             Ok(v) => v,
             Err(e) => {
                 if r.redelivered {
@@ -135,12 +139,6 @@ impl Kafka {
                 return Handled::Next;
             }
         };
-        if self.config.timestamps == TimestampSource::Record && batch.time.is_none() {
-            batch.time = r
-                .stamp_ms
-                .and_then(|ms| ms.checked_mul(1_000_000))
-                .and_then(|ns| CaptureTime::from_unix_nanos(ns).ok());
-        }
         self.enter_scene(&scene, partition);
         // Held under the frame it will be published as (after the camera's clock offset, or
         // its capture time's tick), so that frame's result closes it.
