@@ -278,7 +278,7 @@ impl PhaseTracker {
     /// Records a capture at `t_ns` whose phase is `phase_ms` (any branch: it is taken modulo
     /// the period). Captures older than the newest are left out.
     pub fn observe(&mut self, t_ns: i64, phase_ms: f64) {
-        if !phase_ms.is_finite() || !(self.period_ms > 0.0) {
+        if !phase_ms.is_finite() || self.period_ms.is_nan() || self.period_ms <= 0.0 {
             return;
         }
         let origin = *self.origin.get_or_insert_with(|| {
@@ -286,10 +286,8 @@ impl PhaseTracker {
             t_ns
         });
         let t = t_ns.saturating_sub(origin) as f64 / 1e9;
-        if !self.block.is_empty() || !self.blocks.is_empty() {
-            if t < self.newest {
-                return;
-            }
+        if (!self.block.is_empty() || !self.blocks.is_empty()) && t < self.newest {
+            return;
         }
         self.newest = t;
         self.block.push((t, phase_ms.rem_euclid(self.period_ms)));
