@@ -1,8 +1,13 @@
-"""Push a detector's per-camera output to crossview and print the identities it returns.
+"""Push a detector's per-camera output to crossview, stamped with each camera's capture time,
+and print the identities it returns.
 
-The detector is yours: any function ``detect(camera, frame_id) -> N×5 array`` (x1, y1, x2,
-y2, score in pixels). So that this script runs as it is, the stand-in below reads the boxes
-of a SPEC §7 recording (e.g. one made by ``crossview simulate``).
+The detector is yours: any function ``detect(camera, frame) -> N×5 array`` (x1, y1, x2, y2,
+score in pixels), and the time the camera captured that frame (an RTSP reader, GStreamer or
+OpenCV gives it per frame). The server groups the cameras' batches by those times (the scene
+declares its rate: ``crossview serve --scene demo=cam0:1280x720,...@10fps``), so the cameras
+need no shared frame counter. So that this script runs as it is, the stand-in below reads the
+boxes of a SPEC §7 recording (e.g. one made by ``crossview simulate``) and stamps frame ``k``
+of it ``k / fps`` after now.
 
     python push_from_detector.py --server 127.0.0.1:8080 --scene demo demo.jsonl
 """
@@ -10,6 +15,7 @@ of a SPEC §7 recording (e.g. one made by ``crossview simulate``).
 from __future__ import annotations
 
 import argparse
+import time
 from collections import defaultdict
 from collections.abc import Callable
 
@@ -21,12 +27,14 @@ import crossview_client as cv
 Detector = Callable[[str, int], "npt.NDArray[np.float64]"]
 
 
-def recording_detector(path: str) -> tuple[list[str], list[int], Detector]:
-    """A stand-in detector: the boxes a recording holds for each camera and frame."""
+def recording_detector(path: str) -> tuple[list[str], list[int], float, Detector]:
+    """A stand-in detector: the boxes a recording holds for each camera and frame, and the
+    recording's frame rate (10 when it declares none)."""
     rec = cv.open_recording(path)
     boxes: dict[tuple[str, int], npt.NDArray[np.float64]] = {}
     frames: dict[int, None] = {}
     for b in rec.batches():
+        assert b.frame_id is not None, "the stand-in reads a recording with frame ids"
         frames[b.frame_id] = None
         boxes[(b.camera, b.frame_id)] = np.array(
             [[d.x1, d.y1, d.x2, d.y2, 1.0 if d.score is None else d.score] for d in b.detections]
@@ -35,7 +43,7 @@ def recording_detector(path: str) -> tuple[list[str], list[int], Detector]:
     def detect(camera: str, frame_id: int) -> npt.NDArray[np.float64]:
         return boxes.get((camera, frame_id), np.zeros((0, 5)))
 
-    return [c.name for c in rec.cameras], list(frames), detect
+    return [c.name for c in rec.cameras], list(frames), rec.fps or 10.0, detect
 
 
 def main() -> None:
@@ -48,7 +56,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=0, help="stop after this many frames (0: all)")
     args = ap.parse_args()
 
-    cameras, frame_ids, detect = recording_detector(args.recording)
+    cameras, frame_ids, fps, detect = recording_detector(args.recording)
     if args.frames:
         frame_ids = frame_ids[: args.frames]
     with cv.connect(args.server, args.transport, api_key=args.api_key) as client:
@@ -57,14 +65,21 @@ def main() -> None:
         if served != cameras:
             raise SystemExit(f"scene {args.scene!r} has cameras {served}, the recording {cameras}")
         tracks: dict[int, int] = defaultdict(int)
+        start = time.time()
         with client.subscribe(args.scene) as results:
-            for frame_id in frame_ids:
-                # One batch per camera; a camera that saw nobody sends an empty array.
-                for ack in client.push_frame(args.scene, frame_id, {c: detect(c, frame_id) for c in cameras}):
-                    if ack.error is not None:
-                        print(f"frame {frame_id} camera {ack.camera}: refused: {ack.error}")
+            for k, frame_id in enumerate(frame_ids):
+                # One batch per camera, stamped with its capture time; a camera that saw
+                # nobody sends an empty array. The ack names the frame the batch went to.
+                captured = start + k / fps
+                placed = 0
+                for cam in cameras:
+                    try:
+                        ack = client.push(args.scene, cam, detect(cam, frame_id), timestamp=captured)
+                        placed = max(placed, ack.frame_id or 0)
+                    except cv.CrossviewError as e:
+                        print(f"frame {k} camera {cam}: refused: {e}")
                 for r in results:  # every camera reported: the frame's result is next
-                    if r.frame_id >= frame_id:
+                    if r.frame_id >= placed:
                         break
                 ids = " ".join(
                     f"{i.track_id}:{'+'.join(m.camera for m in i.members)}" for i in r.identities
@@ -72,7 +87,8 @@ def main() -> None:
                 for i in r.identities:
                     if i.track_id is not None:
                         tracks[i.track_id] += 1
-                print(f"frame {r.frame_id}: {len(r.identities)} identities  {ids}", flush=True)
+                when = r.time.isoformat(timespec="milliseconds") if r.time else "-"
+                print(f"frame {r.frame_id} at {when}: {len(r.identities)} identities  {ids}", flush=True)
         print(f"{len(frame_ids)} frames, {len(tracks)} tracks")
 
 

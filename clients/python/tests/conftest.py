@@ -26,6 +26,8 @@ REPO = Path(__file__).resolve().parents[3]
 MODELS = REPO / "models"
 DEMO_MODEL = MODELS / "demo.onnx"
 DEMO_CAMERAS = ("cam0", "cam1", "cam2", "cam3")
+#: The demo scene declared at 10 frames/s (capture times need the scene's rate).
+DEMO_TIMED_SCENE = "demo=" + ",".join(f"{c}:1280x720" for c in DEMO_CAMERAS) + "@10fps"
 START_TIMEOUT = 60.0
 _ADDR = re.compile(r"(\d+\.\d+\.\d+\.\d+:\d+)")
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")

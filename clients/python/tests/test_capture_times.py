@@ -8,7 +8,7 @@ from collections.abc import Iterator
 from datetime import datetime, timedelta, timezone
 
 import pytest
-from conftest import DEMO_CAMERAS, Server, person_boxes, start_server
+from conftest import DEMO_CAMERAS, DEMO_TIMED_SCENE, Server, person_boxes, start_server
 
 import crossview_client as cv
 
@@ -19,8 +19,7 @@ TICK0 = 17_965_152_000
 
 @pytest.fixture(scope="module")
 def timed_server() -> Iterator[Server]:
-    cams = ",".join(f"{c}:1280x720" for c in DEMO_CAMERAS)
-    s = start_server("--sync-timeout", "60s", "--scene", f"demo={cams}@10fps")
+    s = start_server("--sync-timeout", "60s", "--scene", DEMO_TIMED_SCENE)
     yield s
     s.stop()
 

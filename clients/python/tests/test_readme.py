@@ -12,7 +12,15 @@ import sys
 import threading
 from pathlib import Path
 
-from conftest import REPO, crossview_bin, free_port, run_python, server_env, start_server
+from conftest import (
+    DEMO_TIMED_SCENE,
+    REPO,
+    crossview_bin,
+    free_port,
+    run_python,
+    server_env,
+    start_server,
+)
 
 EXAMPLES = REPO / "clients" / "python" / "examples"
 
@@ -43,12 +51,13 @@ def test_readme_from_python_steps_work_as_written(tmp_path: Path) -> None:
     assert out.returncode == 0, out.stdout + out.stderr
     frames = [l for l in out.stdout.splitlines() if l.startswith("frame ")]
     assert len(frames) == 20, out.stdout
-    assert all(re.match(r"frame \d+: \d+ identities ", l) for l in frames)
+    assert all(re.match(r"frame \d+ at \S+: \d+ identities ", l) for l in frames)
     assert "20 frames" in out.stdout
 
 
 def test_examples_push_and_follow(tmp_path: Path) -> None:
-    server = start_server("--sync-timeout", "60s")
+    # The detector example stamps its batches with capture times: the scene declares its rate.
+    server = start_server("--sync-timeout", "60s", "--scene", DEMO_TIMED_SCENE)
     try:
         rec = tmp_path / "demo.jsonl"
         subprocess.run(

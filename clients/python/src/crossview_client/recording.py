@@ -7,6 +7,7 @@ import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
+from ._convert import time_from_json
 from .types import Batch, Camera, to_detections
 
 __all__ = ["Recording", "open_recording", "ReplaySummary"]
@@ -44,14 +45,28 @@ class Recording:
                     return
                 raise ValueError(f"{self.path}:{lineno}: not JSON: {e}") from e
             try:
+                frame_id, stamp = obj.get("frame_id"), obj.get("time")
+                if frame_id is None and stamp is None:
+                    raise KeyError("frame_id")
                 yield Batch(
                     scene=target,
                     camera=str(obj["camera"]),
-                    frame_id=int(obj["frame_id"]),
+                    frame_id=None if frame_id is None else int(frame_id),
                     detections=tuple(to_detections(obj.get("detections") or [])),
+                    timestamp=None if stamp is None else _seconds(stamp),
                 )
             except (KeyError, TypeError, ValueError) as e:
                 raise ValueError(f"{self.path}:{lineno}: not a batch line: {e!r}") from e
+
+
+def _seconds(stamp: object) -> float:
+    """A line's ``time`` (seconds since the Unix epoch, or RFC 3339) as seconds."""
+    if isinstance(stamp, (int, float)) and not isinstance(stamp, bool):
+        return float(stamp)
+    parsed = time_from_json(stamp)
+    if parsed is None:
+        raise ValueError(f"time {stamp!r} is neither seconds nor an RFC 3339 date-time")
+    return parsed.timestamp()
 
 
 def _lines(f: "os.PathLike[str] | str") -> Iterator[tuple[int, str, bool]]:
