@@ -13,7 +13,7 @@
 //! [`PhaseTracker`] follows one camera's timing from its capture times alone: where within the
 //! period its captures fall (its *phase*, a sub-frame clock offset), how fast that moves (a
 //! clock that gains or loses: *drift*) and how much single captures scatter (*jitter*): a
-//! line through the circular means of its recent captures.
+//! circular mean of its first captures, then an average of its captures' distances from it.
 use std::collections::VecDeque;
 
 use serde::de::{self, Deserializer, Visitor};
@@ -208,145 +208,149 @@ impl Ticks {
 
 /// One camera's timing, followed from its capture times (see the module docs).
 ///
-/// Each capture gives a phase modulo the period. The tracker never unwraps single captures
-/// against its own running estimate: with a jitter near half a period that feeds back (an
-/// estimate a little off wraps the far captures to the wrong side, which pulls it further
-/// off). It takes [`Self::BLOCK`] captures at a time and places them on the circle where they
-/// gather most tightly (the cut of the circle that gives them the least variance: their
-/// intrinsic mean, whatever any estimate says), unwraps those block means (consecutive blocks
-/// differ by a drift of milliseconds, never by half a period) and fits a line through the last
-/// [`Self::BLOCKS`] of them: the phase now, its drift and, from each block's spread, the jitter.
+/// Each capture gives a phase modulo the period. For its first [`TrackerSettings::warmup`]
+/// captures the phase is their circular mean (unbiased wherever it starts); then it follows
+/// each capture's distance from it, wrapped to half a period, with a small gain
+/// ([`TrackerSettings::gain`]: an exponential average over the last ~50 captures). That is
+/// stable for any jitter short of half a period: with jitter uniform in ±J and the phase `e`
+/// off, the far captures wrap to the other side, but the captures' mean distance still points
+/// back (by `e` while `e < P/2 − J`, less beyond, never away) — unlike a line fitted through
+/// captures unwrapped against it and extrapolated, which ran away. The drift is a
+/// least-squares line through the last [`Self::HISTORY`] captures' unwrapped phases (reported,
+/// after a minute); the jitter is the captures' standard deviation about the phase.
 #[derive(Debug, Clone)]
 pub struct PhaseTracker {
     period_ms: f64,
-    /// The block being filled: (capture time in seconds since `origin`, phase in `[0, P)`).
-    block: Vec<(f64, f64)>,
-    /// Completed blocks, oldest first, their phases unwrapped.
-    blocks: VecDeque<BlockMean>,
-    /// The first capture time seen (nanoseconds), the origin of the blocks' times.
+    settings: TrackerSettings,
+    /// Captures seen.
+    n: usize,
+    /// Warm-up: the sums of the captures' unit vectors on the circle.
+    cos: f64,
+    sin: f64,
+    /// The phase now, ms (continuous: not wrapped).
+    phase: f64,
+    /// Mean squared distance of captures from the phase, ms².
+    sq: f64,
+    /// (capture time in seconds since `origin`, the capture's unwrapped phase), newest last.
+    history: VecDeque<(f64, f64)>,
+    /// The first capture time seen (nanoseconds).
     origin: Option<i64>,
-    /// The first capture's phase as given: the branch the phase is unwrapped near.
-    anchor: f64,
-    /// The newest capture time, seconds since `origin`.
-    newest: f64,
 }
 
-#[derive(Debug, Clone, Copy)]
-struct BlockMean {
-    t: f64,
-    phase: f64,
-    /// Variance of its captures' phases about `phase`, ms².
-    var: f64,
+/// How a [`PhaseTracker`] follows a camera (the defaults are its associated constants).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackerSettings {
+    /// Captures whose circular mean places the phase.
+    pub warmup: usize,
+    /// The weight of each later capture.
+    pub gain: f64,
+}
+
+impl Default for TrackerSettings {
+    fn default() -> Self {
+        TrackerSettings {
+            warmup: PhaseTracker::WARMUP,
+            gain: PhaseTracker::GAIN,
+        }
+    }
 }
 
 /// What a [`PhaseTracker`] knows of its camera now.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Timing {
-    /// Where the camera's captures fall within the period at the newest capture, in ms (its
-    /// sub-frame offset; not wrapped: a drifting clock's phase runs on past the period).
+    /// Where the camera's captures fall within the period, in ms (its sub-frame offset; not
+    /// wrapped: a drifting clock's phase runs on past the period).
     pub phase_ms: f64,
     /// How fast the phase moves, in ms per minute (a clock that gains: positive); `None`
-    /// before [`PhaseTracker::LINE_BLOCKS`] blocks (a shorter span says nothing of drift).
+    /// before a minute of captures.
     pub drift_ms_per_min: Option<f64>,
-    /// Standard deviation of single captures about it, in ms.
+    /// Standard deviation of single captures about the phase, in ms.
     pub jitter_ms: f64,
-    /// Captures it rests on.
+    /// Captures seen.
     pub captures: usize,
 }
 
 impl PhaseTracker {
-    /// Captures per block.
-    pub const BLOCK: usize = 32;
-    /// Blocks the line is fitted to (2,048 captures: at 10 frames/s, 3.4 min; a step in a
-    /// camera's clock is followed within about half that).
-    pub const BLOCKS: usize = 64;
-    /// Blocks needed before the phase follows a line (a drift) rather than their mean.
-    pub const LINE_BLOCKS: usize = 4;
+    /// Captures whose circular mean places the phase.
+    pub const WARMUP: usize = 32;
+    /// The weight of each capture after the warm-up (or 1/n while that is larger).
+    pub const GAIN: f64 = 0.02;
+    /// Captures the drift is fitted to (at 10 frames/s, 3.4 min).
+    pub const HISTORY: usize = 2048;
 
     /// A tracker for a scene of period `period_ms` that has seen nothing.
     pub fn new(period_ms: f64) -> Self {
+        Self::with_settings(period_ms, TrackerSettings::default())
+    }
+
+    /// [`Self::new`] with other settings (what the benchmarks vary ±50 %).
+    pub fn with_settings(period_ms: f64, settings: TrackerSettings) -> Self {
         PhaseTracker {
             period_ms,
-            block: Vec::with_capacity(Self::BLOCK),
-            blocks: VecDeque::new(),
+            settings: TrackerSettings {
+                warmup: settings.warmup.max(1),
+                gain: settings.gain.clamp(1e-4, 1.0),
+            },
+            n: 0,
+            cos: 0.0,
+            sin: 0.0,
+            phase: 0.0,
+            sq: 0.0,
+            history: VecDeque::new(),
             origin: None,
-            anchor: 0.0,
-            newest: 0.0,
         }
     }
 
+    /// `x` less the phase, wrapped to half a period either way.
+    fn off(&self, x: f64) -> f64 {
+        let d = x - self.phase;
+        d - self.period_ms * (d / self.period_ms).round()
+    }
+
     /// Records a capture at `t_ns` whose phase is `phase_ms` (any branch: it is taken modulo
-    /// the period). Captures older than the newest are left out.
+    /// the period; the first capture's branch is the phase's). Captures older than the newest
+    /// are left out.
     pub fn observe(&mut self, t_ns: i64, phase_ms: f64) {
         if !phase_ms.is_finite() || self.period_ms.is_nan() || self.period_ms <= 0.0 {
             return;
         }
-        let origin = *self.origin.get_or_insert_with(|| {
-            self.anchor = phase_ms;
-            t_ns
-        });
+        let origin = *self.origin.get_or_insert(t_ns);
         let t = t_ns.saturating_sub(origin) as f64 / 1e9;
-        if (!self.block.is_empty() || !self.blocks.is_empty()) && t < self.newest {
+        if self.history.back().is_some_and(|&(last, _)| t < last) {
             return;
         }
-        self.newest = t;
-        self.block.push((t, phase_ms.rem_euclid(self.period_ms)));
-        if self.block.len() == Self::BLOCK {
-            let mean = self.block_mean(&self.block);
-            self.blocks.push_back(mean);
-            if self.blocks.len() > Self::BLOCKS {
-                self.blocks.pop_front();
-            }
-            self.block.clear();
+        if self.n == 0 {
+            self.phase = phase_ms;
         }
-    }
-
-    /// The captures' intrinsic mean on the circle (see the type's docs), unwrapped near the
-    /// last block's phase (or the anchor), with their mean time and variance.
-    fn block_mean(&self, captures: &[(f64, f64)]) -> BlockMean {
-        let p = self.period_ms;
-        let n = captures.len().max(1) as f64;
-        let mut phases: Vec<f64> = captures.iter().map(|&(_, ph)| ph).collect();
-        phases.sort_by(f64::total_cmp);
-        // Cutting the circle before sorted capture `j` puts the ones before it a period up.
-        let (sum, sq): (f64, f64) = phases
-            .iter()
-            .fold((0.0, 0.0), |(a, b), &x| (a + x, b + x * x));
-        let (mut best_mean, mut best_var) = (sum / n, sq / n - (sum / n).powi(2));
-        let (mut s, mut q) = (sum, sq);
-        for &x in &phases[..phases.len().saturating_sub(1)] {
-            s += p;
-            q += 2.0 * x * p + p * p;
-            let mean = s / n;
-            let var = q / n - mean * mean;
-            if var < best_var {
-                (best_mean, best_var) = (mean, var);
-            }
-        }
-        let t = captures.iter().map(|&(t, _)| t).sum::<f64>() / n;
-        // Near where the earlier blocks' line puts it (one stray block cannot carry the branch
-        // off), or the last block's, or the first capture's.
-        let near = if self.blocks.len() >= Self::LINE_BLOCKS {
-            let (slope, at) = line(&self.blocks);
-            at + slope * (t - self.blocks.back().map_or(t, |m| m.t))
+        self.n += 1;
+        let r = self.off(phase_ms);
+        if self.n <= self.settings.warmup {
+            let angle = std::f64::consts::TAU * phase_ms / self.period_ms;
+            self.cos += angle.cos();
+            self.sin += angle.sin();
+            let mean = self.sin.atan2(self.cos) * self.period_ms / std::f64::consts::TAU;
+            self.phase += self.off(mean);
+            self.sq += (r * r - self.sq) / self.n as f64;
         } else {
-            self.blocks.back().map_or(self.anchor, |m| m.phase)
-        };
-        BlockMean {
-            t,
-            phase: best_mean + p * ((near - best_mean) / p).round(),
-            var: best_var.max(0.0) * n / (n - 1.0).max(1.0),
+            let g = self.settings.gain.max(1.0 / self.n as f64);
+            self.phase += g * r;
+            self.sq += g * (r * r - self.sq);
+        }
+        let unwrapped = self.phase + self.off(phase_ms);
+        self.history.push_back((t, unwrapped));
+        if self.history.len() > Self::HISTORY {
+            self.history.pop_front();
         }
     }
 
     /// True before the first capture.
     pub fn is_empty(&self) -> bool {
-        self.origin.is_none()
+        self.n == 0
     }
 
     /// Forgets every capture (the camera's clock changed).
     pub fn reset(&mut self) {
-        *self = PhaseTracker::new(self.period_ms);
+        *self = PhaseTracker::with_settings(self.period_ms, self.settings);
     }
 
     /// The camera's timing now, once it sent a capture.
@@ -354,53 +358,31 @@ impl PhaseTracker {
         if self.is_empty() {
             return None;
         }
-        let captures = self.blocks.len() * Self::BLOCK + self.block.len();
-        let (phase, slope) = if self.blocks.len() >= Self::LINE_BLOCKS {
-            let (slope, at) = line(&self.blocks);
-            let last = self.blocks.back().map_or(0.0, |m| m.t);
-            (at + slope * (self.newest - last), Some(slope))
-        } else {
-            // Too few blocks for a line: the mean of every capture so far (the blocks' and
-            // the partial one's, weighted by their captures).
-            let partial = (!self.block.is_empty()).then(|| self.block_mean(&self.block).phase);
-            let full = self.blocks.iter().map(|m| (m.phase, Self::BLOCK as f64));
-            let part = partial.map(|b| (b, self.block.len() as f64));
-            let (sum, w) = full
-                .chain(part)
-                .fold((0.0, 0.0), |(s, w), (p, n)| (s + p * n, w + n));
-            (if w > 0.0 { sum / w } else { self.anchor }, None)
+        let span = match (self.history.front(), self.history.back()) {
+            (Some(a), Some(b)) => b.0 - a.0,
+            _ => 0.0,
         };
-        let vars: Vec<f64> = self
-            .blocks
-            .iter()
-            .map(|m| m.var)
-            .chain((self.block.len() >= 2).then(|| self.block_mean(&self.block).var))
-            .collect();
-        let jitter = (vars.iter().sum::<f64>() / vars.len().max(1) as f64).sqrt();
         Some(Timing {
-            phase_ms: phase,
-            drift_ms_per_min: slope.map(|s| s * 60.0),
-            jitter_ms: jitter,
-            captures,
+            phase_ms: self.phase,
+            drift_ms_per_min: (span >= 60.0).then(|| slope(&self.history) * 60.0),
+            jitter_ms: self.sq.max(0.0).sqrt(),
+            captures: self.n,
         })
     }
 }
 
-/// Least-squares line through the blocks' phases: (slope in ms per second, the line's value
-/// at the newest block).
-fn line(blocks: &VecDeque<BlockMean>) -> (f64, f64) {
-    let n = blocks.len() as f64;
-    let (mt, mp) = blocks
+/// Least-squares slope of `(t, y)` points, per unit of `t`.
+fn slope(points: &VecDeque<(f64, f64)>) -> f64 {
+    let n = points.len().max(1) as f64;
+    let (mt, my) = points
         .iter()
-        .fold((0.0, 0.0), |(a, b), m| (a + m.t / n, b + m.phase / n));
-    let (mut stt, mut stp) = (0.0, 0.0);
-    for m in blocks {
-        stt += (m.t - mt) * (m.t - mt);
-        stp += (m.t - mt) * (m.phase - mp);
+        .fold((0.0, 0.0), |(a, b), &(t, y)| (a + t / n, b + y / n));
+    let (mut stt, mut sty) = (0.0, 0.0);
+    for &(t, y) in points {
+        stt += (t - mt) * (t - mt);
+        sty += (t - mt) * (y - my);
     }
-    let slope = if stt > 0.0 { stp / stt } else { 0.0 };
-    let newest = blocks.back().map_or(mt, |m| m.t);
-    (slope, mp + slope * (newest - mt))
+    if stt > 0.0 { sty / stt } else { 0.0 }
 }
 
 /// One camera's clock offset in milliseconds, for capture times: declared (fixed), or followed
@@ -410,6 +392,7 @@ fn line(blocks: &VecDeque<BlockMean>) -> (f64, f64) {
 pub struct CameraPhase {
     declared_ms: Option<f64>,
     phase_ms: f64,
+    settings: TrackerSettings,
     /// Made at the first capture (it needs the scene's period).
     tracker: Option<PhaseTracker>,
 }
@@ -431,10 +414,16 @@ pub struct Placement {
 impl CameraPhase {
     /// A camera whose offset is `declared_ms` (0: none declared, followed from its times).
     pub fn new(declared_ms: i64) -> Self {
+        Self::with_settings(declared_ms, TrackerSettings::default())
+    }
+
+    /// [`Self::new`] whose tracker has other settings (what the benchmarks vary).
+    pub fn with_settings(declared_ms: i64, settings: TrackerSettings) -> Self {
         let declared_ms = (declared_ms != 0).then_some(declared_ms as f64);
         CameraPhase {
             declared_ms,
             phase_ms: declared_ms.unwrap_or(0.0),
+            settings,
             tracker: None,
         }
     }
@@ -469,7 +458,7 @@ impl CameraPhase {
     pub fn accept(&mut self, p: &Placement) {
         let tracker = self
             .tracker
-            .get_or_insert_with(|| PhaseTracker::new(p.period_ms));
+            .get_or_insert_with(|| PhaseTracker::with_settings(p.period_ms, self.settings));
         tracker.observe(p.time_ns, p.observed_ms);
         if self.declared_ms.is_none()
             && let Some(t) = tracker.timing()
@@ -565,10 +554,7 @@ mod tests {
         // Unwrapped: two periods later, the phase ran on continuously.
         assert!((tm.phase_ms - tr.timing().unwrap().phase_ms).abs() < 1e-9);
         assert!((tm.jitter_ms - 23.1).abs() < 2.0, "{tm:?}");
-        assert_eq!(
-            tm.captures,
-            PhaseTracker::BLOCK * PhaseTracker::BLOCKS + 6000 % PhaseTracker::BLOCK
-        );
+        assert_eq!(tm.captures, 6000);
         tr.reset();
         assert!(tr.timing().is_none());
     }
