@@ -3,7 +3,9 @@
 //! at 0; with one camera's ids shifted (`--simulate-lag`), that camera and only it is found at
 //! the shift; a recording whose header declares the shift (`@+N`) is back in sync; an ensemble
 //! is estimated by its leading member alone (as the server's live watch); bad arguments are
-//! refused with a message.
+//! refused with a message. A recording of capture times instead of frame ids reads into the
+//! same frames (`eval` scores it line for line as its frame-id twin) and has its cameras'
+//! clocks read in milliseconds.
 use std::process::Command;
 
 use crossview_testing::{demo_with_untrained_member, repo_root, run_crossview};
@@ -176,33 +178,77 @@ fn an_ensemble_is_estimated_by_its_leading_member_alone() {
     }
 }
 
-#[test]
-fn a_recording_of_capture_times_is_grouped_by_them_and_its_clocks_read_in_milliseconds() {
+/// The clocks of [`timed_copy`]'s cameras, seconds: cam1 230 ms ahead, cam2 120 ms behind.
+const CLOCK: [f64; 4] = [0.0, 0.230, -0.120, 0.0];
+
+/// `rec` as its cameras' capture times would stamp it (10 frames/s, [`CLOCK`], every capture
+/// ±20 ms), no frame ids; with `declare`, the header declares each camera's offset in ms.
+fn timed_copy(rec: &str, out: &std::path::Path, declare: bool) -> String {
     use rand::{Rng, SeedableRng};
-    let dir = tempfile::tempdir().unwrap();
-    let rec = simulate(dir.path());
-    // The same frames as the cameras' capture times would stamp them: cam1's clock 230 ms
-    // ahead, cam2's 120 ms behind, every capture ±20 ms; no frame ids.
-    let clock = [0.0, 0.230, -0.120, 0.0];
     let mut rng = rand::rngs::StdRng::seed_from_u64(9);
-    let text = std::fs::read_to_string(&rec).unwrap();
-    let mut out = String::new();
+    let text = std::fs::read_to_string(rec).unwrap();
+    let mut lines = String::new();
     for (i, line) in text.lines().enumerate() {
         let mut v: Value = serde_json::from_str(line).unwrap();
-        if i > 0 {
+        if i == 0 && declare {
+            for (c, cam) in v["scene"]["cameras"]
+                .as_array_mut()
+                .unwrap()
+                .iter_mut()
+                .enumerate()
+            {
+                cam["offset_ms"] = serde_json::json!((CLOCK[c] * 1e3).round() as i64);
+            }
+        } else if i > 0 {
             let k = v["frame_id"].as_u64().unwrap() as f64;
             let c: usize = v["camera"].as_str().unwrap()[3..].parse().unwrap();
-            let t = 1_796_515_200.0 + k / 10.0 + clock[c] + rng.random_range(-0.02..0.02);
+            let t = 1_796_515_200.0 + k / 10.0 + CLOCK[c] + rng.random_range(-0.02..0.02);
             let o = v.as_object_mut().unwrap();
             o.remove("frame_id");
             o.insert("time".into(), serde_json::json!(t));
         }
-        out.push_str(&v.to_string());
-        out.push('\n');
+        lines.push_str(&v.to_string());
+        lines.push('\n');
     }
-    let timed = dir.path().join("times.jsonl");
-    std::fs::write(&timed, out).unwrap();
-    let report = check(timed.to_str().unwrap(), &[]);
+    std::fs::write(out, lines).unwrap();
+    out.to_str().unwrap().to_string()
+}
+
+#[test]
+fn a_recording_of_capture_times_evaluates_as_its_frame_id_twin() {
+    let dir = tempfile::tempdir().unwrap();
+    // Ground-truth ids on every box (no false detections): what `eval` scores.
+    let rec = dir.path().join("clean.jsonl").to_str().unwrap().to_string();
+    run_crossview(
+        BIN,
+        &[
+            "simulate", "--preset", "square4", "--frames", "300", "--seed", "4", "--clean",
+            "--out", &rec,
+        ],
+        &[],
+    );
+    let timed = timed_copy(&rec, &dir.path().join("times.jsonl"), true);
+    let demo = repo_root().join("models/demo.onnx");
+    let eval = |data: &str| {
+        run_crossview(
+            BIN,
+            &["eval", "--model", demo.to_str().unwrap(), "--data", data],
+            &[("CROSSVIEW_WORKERS", "2")],
+        )
+    };
+    // The same frames (ticks for ids), the same boxes: the same table, line for line.
+    let (by_time, by_id) = (eval(&timed), eval(&rec));
+    assert!(by_id.contains("identities t="), "{by_id}");
+    assert_eq!(by_time, by_id);
+}
+
+#[test]
+fn a_recording_of_capture_times_is_grouped_by_them_and_its_clocks_read_in_milliseconds() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = simulate(dir.path());
+    let timed = timed_copy(&rec, &dir.path().join("times.jsonl"), false);
+    let clock = CLOCK;
+    let report = check(&timed, &[]);
     let reference = report["reference"].as_str().unwrap();
     let at = |name: &str| 1e3 * clock[name[3..].parse::<usize>().unwrap()];
     for c in report["cameras"].as_array().unwrap() {
