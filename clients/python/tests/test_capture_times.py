@@ -44,6 +44,10 @@ def test_timestamped_pushes_group_by_capture_time(
                 r = next(iter(sub))
                 assert (r.frame_id, r.complete) == (TICK0 + k, True), r
                 assert r.time == T0 + timedelta(seconds=k / 10), r.time
+        # Unary: the frame's tick and its time.
+        views = {cam: person_boxes(2) for cam in DEMO_CAMERAS}
+        r = client.associate("demo", 0, views, timestamp=T0 + timedelta(seconds=first / 10 + 0.02))
+        assert (r.frame_id, r.time) == (TICK0 + first, T0 + timedelta(seconds=first / 10)), r
         # A naive datetime is refused before anything is sent (its zone would be a guess).
         with pytest.raises(ValueError):
             client.push("demo", "cam0", [], timestamp=datetime(2026, 12, 6))

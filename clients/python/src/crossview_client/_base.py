@@ -124,10 +124,18 @@ class SyncClient(ABC):
 
     @abstractmethod
     def associate(
-        self, scene: str, frame_id: int, views: Mapping[str, Boxes], *, timeout: float | None = None
+        self,
+        scene: str,
+        frame_id: int,
+        views: Mapping[str, Boxes],
+        *,
+        timestamp: Timestamp | None = None,
+        timeout: float | None = None,
     ) -> FrameResult:
         """Associates one already synchronized frame (``views``: camera → boxes); not
-        published to subscribers and not tracked (no track ids)."""
+        published to subscribers and not tracked (no track ids). With ``timestamp`` (the
+        frame's capture time; the scene must declare its rate) the result's ``frame_id`` is
+        its tick (``frame_id`` may then be 0) and ``time`` the tick's time."""
 
     @abstractmethod
     def wait_ready(self, timeout: float = 30.0) -> None:

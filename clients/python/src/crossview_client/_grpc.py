@@ -20,7 +20,7 @@ from typing import Any, cast
 import grpc
 import grpc.aio
 
-from ._base import AsyncClient, SyncClient, frame_batches
+from ._base import AsyncClient, SyncClient, Timestamp, frame_batches, to_seconds
 from ._config import DEFAULT_RECONNECT_TIMEOUT, DEFAULT_TIMEOUT, Settings, make_settings
 from ._convert import (
     ack_from_pb,
@@ -29,6 +29,7 @@ from ._convert import (
     reload_from_pb,
     result_from_pb,
     scene_from_pb,
+    timestamp_to_pb,
 )
 from ._pb import crossview_pb2 as pb
 from ._pb import crossview_pb2_grpc as rpc
@@ -100,9 +101,11 @@ def _metadata(s: Settings) -> tuple[tuple[str, str], ...]:
     return (("authorization", f"Bearer {s.api_key}"),) if s.api_key else ()
 
 
-def _associate_request(scene: str, frame_id: int, views: Mapping[str, Boxes]) -> pb.AssociateRequest:
+def _associate_request(
+    scene: str, frame_id: int, views: Mapping[str, Boxes], timestamp: Timestamp | None
+) -> pb.AssociateRequest:
     batches = frame_batches(scene, frame_id, views)
-    return pb.AssociateRequest(
+    req = pb.AssociateRequest(
         scene=scene,
         frame_id=frame_id,
         views=[
@@ -110,6 +113,9 @@ def _associate_request(scene: str, frame_id: int, views: Mapping[str, Boxes]) ->
             for b in batches
         ],
     )
+    if timestamp is not None:
+        req.time.CopyFrom(timestamp_to_pb(to_seconds(timestamp)))
+    return req
 
 
 class _PushCall:
@@ -253,9 +259,15 @@ class GrpcClient(SyncClient):
         return reload_from_pb(self._unary(self._stub.Reload, pb.ReloadRequest(), timeout))
 
     def associate(
-        self, scene: str, frame_id: int, views: Mapping[str, Boxes], *, timeout: float | None = None
+        self,
+        scene: str,
+        frame_id: int,
+        views: Mapping[str, Boxes],
+        *,
+        timestamp: Timestamp | None = None,
+        timeout: float | None = None,
     ) -> FrameResult:
-        req = _associate_request(scene, frame_id, views)
+        req = _associate_request(scene, frame_id, views, timestamp)
         return result_from_pb(self._unary(self._stub.Associate, req, timeout))
 
     def _call_for_push(self, timeout: float) -> _PushCall:
@@ -513,10 +525,16 @@ class AsyncGrpcClient(AsyncClient):
         return reload_from_pb(await self._unary(self._stub.Reload, pb.ReloadRequest(), timeout))
 
     async def associate(
-        self, scene: str, frame_id: int, views: Mapping[str, Boxes], *, timeout: float | None = None
+        self,
+        scene: str,
+        frame_id: int,
+        views: Mapping[str, Boxes],
+        *,
+        timestamp: Timestamp | None = None,
+        timeout: float | None = None,
     ) -> FrameResult:
         """Associates one already synchronized frame (``views``: camera → boxes)."""
-        req = _associate_request(scene, frame_id, views)
+        req = _associate_request(scene, frame_id, views, timestamp)
         return result_from_pb(await self._unary(self._stub.Associate, req, timeout))
 
     async def _call_for_push(self, timeout: float) -> _AsyncPushCall:

@@ -16,7 +16,7 @@ from typing import Any
 
 import httpx
 
-from ._base import AsyncClient, SyncClient, frame_batches
+from ._base import AsyncClient, SyncClient, Timestamp, frame_batches, to_seconds
 from ._config import (
     DEFAULT_RECONNECT_TIMEOUT,
     DEFAULT_TIMEOUT,
@@ -161,8 +161,11 @@ def _single_ack(b: Batch, resp: httpx.Response) -> PushAck:
     return PushAck(b.scene, b.camera, frame_id, None)
 
 
-def _associate_body(scene: str, frame_id: int, views: Mapping[str, Boxes]) -> dict[str, Any]:
-    return {
+def _associate_body(
+    scene: str, frame_id: int, views: Mapping[str, Boxes], timestamp: Timestamp | None = None
+) -> dict[str, Any]:
+    body: dict[str, Any] = {} if timestamp is None else {"time": to_seconds(timestamp)}
+    return body | {
         "frame_id": frame_id,
         "views": [
             {"camera": b.camera, "detections": [d.to_json() for d in b.detections]}
@@ -286,9 +289,15 @@ class HttpClient(SyncClient):
         return reload_from_json(self._request("POST", "/v1/admin/reload", "reload", timeout, json={}))
 
     def associate(
-        self, scene: str, frame_id: int, views: Mapping[str, Boxes], *, timeout: float | None = None
+        self,
+        scene: str,
+        frame_id: int,
+        views: Mapping[str, Boxes],
+        *,
+        timestamp: Timestamp | None = None,
+        timeout: float | None = None,
     ) -> FrameResult:
-        body = _associate_body(scene, frame_id, views)
+        body = _associate_body(scene, frame_id, views, timestamp)
         return result_from_json(
             self._request("POST", f"/v1/scenes/{_quote(scene)}/associate", "associate", timeout, json=body)
         )
@@ -469,10 +478,16 @@ class AsyncHttpClient(AsyncClient):
         return reload_from_json(await self._request("POST", "/v1/admin/reload", "reload", timeout, json={}))
 
     async def associate(
-        self, scene: str, frame_id: int, views: Mapping[str, Boxes], *, timeout: float | None = None
+        self,
+        scene: str,
+        frame_id: int,
+        views: Mapping[str, Boxes],
+        *,
+        timestamp: Timestamp | None = None,
+        timeout: float | None = None,
     ) -> FrameResult:
         """Associates one already synchronized frame (``views``: camera → boxes)."""
-        body = _associate_body(scene, frame_id, views)
+        body = _associate_body(scene, frame_id, views, timestamp)
         return result_from_json(
             await self._request("POST", f"/v1/scenes/{_quote(scene)}/associate", "associate", timeout, json=body)
         )
