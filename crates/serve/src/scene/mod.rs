@@ -312,14 +312,14 @@ impl Scene {
         // The recorder's copy, taken before the lock (the synchronizer takes the original).
         let recorded = self.recorder.as_ref().map(|_| detections.clone());
         let mut intake = lock(&self.intake);
-        // The camera's own frame id: the one given, or its capture time's tick ([`timing`]).
-        let (frame_id, placed) =
-            intake
-                .timing
-                .place(self.name(), &self.spec.cameras[cam], cam, frame_id, time)?;
-        // The frame the batch belongs to: its id less the camera's clock offset.
-        let offset = self.offsets[cam].load(Ordering::Acquire);
-        let frame = self.frame_of(cam, frame_id, offset)?;
+        // The camera's own frame id (the one given, or its capture time's tick) and the frame
+        // it belongs to: that id less the camera's clock offset.
+        let placement::Place {
+            own: frame_id,
+            placed,
+            offset,
+            frame,
+        } = self.place(&intake, cam, frame_id, time)?;
         // Shed before accepting anything. One batch can release several frames at once, so the
         // queue may overshoot the capacity by at most `max_pending_frames`: still bounded.
         self.admit(1)?;

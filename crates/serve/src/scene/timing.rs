@@ -22,6 +22,17 @@ use crossview_core::{CameraSpec, SceneSpec};
 
 use crate::error::{Error, Result};
 
+/// The refusal of a capture time in scene `scene`, which declared no frame rate.
+pub(super) fn no_rate(scene: &str) -> Error {
+    Error::invalid(
+        "time",
+        format!(
+            "scene '{scene}' has no frame rate: declare it (--scene {scene}=CAMERA:WxH,...@10fps, \
+             or a recording header's \"fps\") to send capture times"
+        ),
+    )
+}
+
 /// How a scene's batches are stamped (fixed by its first accepted batch).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(super) enum Stamps {
@@ -40,9 +51,6 @@ struct CameraClock {
     /// The camera's own tick of its last accepted batch.
     last_tick: Option<u64>,
 }
-
-/// A timestamped batch, placed: what [`Timing::accepted`] records once the synchronizer took it.
-pub(super) type Placed = Placement;
 
 /// The scene's clock and its cameras' (see the module docs). Lives under the intake lock.
 #[derive(Debug)]
@@ -98,7 +106,7 @@ impl Timing {
         cam: usize,
         frame_id: u64,
         time: Option<CaptureTime>,
-    ) -> Result<(u64, Option<Placed>)> {
+    ) -> Result<(u64, Option<Placement>)> {
         let Some(time) = time else {
             if self.stamps == Stamps::Times {
                 return Err(Error::invalid(
@@ -121,16 +129,7 @@ impl Timing {
                 ),
             ));
         }
-        let Some(ticks) = self.ticks else {
-            return Err(Error::invalid(
-                "time",
-                format!(
-                    "scene '{scene}' has no frame rate: declare it (--scene \
-                     {scene}=CAMERA:WxH,...@10fps, or a recording header's \"fps\") to send \
-                     capture times"
-                ),
-            ));
-        };
+        let ticks = self.ticks.ok_or_else(|| no_rate(scene))?;
         let clock = &self.cameras[cam];
         let period_ms = ticks.period_ns() / 1e6;
         self.check_agrees(&ticks, camera, frame_id, time)?;
@@ -186,30 +185,30 @@ impl Timing {
         frame_id: u64,
         time: CaptureTime,
     ) -> Result<()> {
-        let t = time.unix_nanos() as f64;
-        if frame_id != 0 {
-            let off_ms = (t - frame_id as f64 * ticks.period_ns()) / 1e6;
-            if off_ms.abs() > self.tolerance_ms {
-                return Err(Error::invalid(
-                    "frame_id",
-                    format!(
-                        "frame_id {frame_id} of camera '{}' disagrees with its time {time} by \
-                         {off_ms:+.1} ms: tick {frame_id} is at {} ({} frames/s, tolerance \
-                         {:.1} ms)",
-                        camera.name,
-                        ticks.time_of(frame_id),
-                        ticks.fps(),
-                        self.tolerance_ms
-                    ),
-                ));
-            }
+        if frame_id == 0 {
+            return Ok(());
+        }
+        let off_ms = (time.unix_nanos() as f64 - frame_id as f64 * ticks.period_ns()) / 1e6;
+        if off_ms.abs() > self.tolerance_ms {
+            return Err(Error::invalid(
+                "frame_id",
+                format!(
+                    "frame_id {frame_id} of camera '{}' disagrees with its time {time} by \
+                     {off_ms:+.1} ms: tick {frame_id} is at {} ({} frames/s, tolerance {:.1} \
+                     ms)",
+                    camera.name,
+                    ticks.time_of(frame_id),
+                    ticks.fps(),
+                    self.tolerance_ms
+                ),
+            ));
         }
         Ok(())
     }
 
     /// Records an accepted batch of camera `cam` (`placed`: timestamped): fixes the scene's
     /// stamps and follows the camera's phase.
-    pub(super) fn accepted(&mut self, cam: usize, placed: Option<Placed>) {
+    pub(super) fn accepted(&mut self, cam: usize, placed: Option<Placement>) {
         let Some(p) = placed else {
             self.stamps = Stamps::Ids;
             return;

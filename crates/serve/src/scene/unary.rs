@@ -88,16 +88,9 @@ impl Scene {
     /// The tick of a unary request's capture time `t` (no camera offsets: the frame is already
     /// synchronized); a nonzero `frame_id` must be that tick.
     fn tick_of_request(&self, frame_id: u64, t: CaptureTime) -> Result<u64> {
-        let scene = self.name();
-        let ticks = self.ticks.ok_or_else(|| {
-            Error::invalid(
-                "time",
-                format!(
-                    "scene '{scene}' has no frame rate: declare it (--scene \
-                     {scene}=CAMERA:WxH,...@10fps) to send capture times"
-                ),
-            )
-        })?;
+        let ticks = self
+            .ticks
+            .ok_or_else(|| super::timing::no_rate(self.name()))?;
         let tick = ticks
             .nearest(t.unix_nanos() as f64)
             .map(|n| n.tick)
