@@ -11,7 +11,7 @@ use crossview_model::metadata::KEY_SCENE;
 use crossview_model::{
     EncoderConfig, EncoderWeights, Ensemble, ModelMetadata, export, write_ensemble_onnx, write_onnx,
 };
-use crossview_train::prepare::{prepare, trained_filter, trained_fps};
+use crossview_train::prepare::{prepare, trained_filter};
 
 /// Model file tools.
 #[derive(Debug, Args)]
@@ -179,7 +179,7 @@ fn fit_calibration(
     // the model's own, and its own training filter, when it records one.
     let fps = fps
         .or(recording.fps)
-        .or_else(|| trained_fps(meta))
+        .or_else(|| meta.train_fps())
         .unwrap_or(crossview_train::data::REFERENCE_FPS);
     let filter = trained_filter(meta).unwrap_or_default();
     let stats = prepare(&mut set, fps, &filter, 1)?;

@@ -19,6 +19,9 @@ pub(crate) const KEY_ALPHA: &str = "crossview.alpha";
 pub(crate) const KEY_VERSION: &str = "crossview.version";
 /// Optional: the scene name the model was built for (an `extra` entry by convention).
 pub const KEY_SCENE: &str = "crossview.scene";
+/// **[ours]** Optional: the training recording's frame rate and the step it was thinned by,
+/// `{"fps": 2.0, "frame_step": 1}` (an `extra` entry, written by `crossview train`).
+pub const KEY_TRAIN_FPS: &str = "crossview.train_fps";
 /// **[ours]** Optional: the label-free calibration `P(same | distance)` (JSON, see
 /// [`Calibration`]).
 pub(crate) const KEY_CALIBRATION: &str = "crossview.calibration";
@@ -75,6 +78,13 @@ impl ModelMetadata {
             mode: Mode::Pairwise,
             identity: IdentityConfig::new(self.calibration.clone(), self.identity_threshold()),
         }
+    }
+
+    /// The frame rate the model's training recording had ([`KEY_TRAIN_FPS`]), when the file
+    /// records one.
+    pub fn train_fps(&self) -> Option<f64> {
+        let v: serde_json::Value = serde_json::from_str(self.extra.get(KEY_TRAIN_FPS)?).ok()?;
+        v["fps"].as_f64()
     }
 
     /// The scene these cameras form, under the name `name` (every camera in sync: clock

@@ -52,17 +52,11 @@ pub fn scene_info(
         },
         association: meta.association_config(),
         version,
-        fps: trained_fps(meta),
+        // A scene's clock when nothing else declares one (a rate that is no rate: none).
+        fps: meta
+            .train_fps()
+            .filter(|&f| crossview_core::types::check_fps(f).is_ok()),
     })
-}
-
-/// The frame rate of the recording the model was trained on (its `crossview.train_fps`,
-/// `{"fps": 2.0, ...}`), if it says: a scene's clock when nothing else declares one.
-fn trained_fps(meta: &ModelMetadata) -> Option<f64> {
-    let v: serde_json::Value = serde_json::from_str(meta.extra.get("crossview.train_fps")?).ok()?;
-    v["fps"]
-        .as_f64()
-        .filter(|&f| crossview_core::types::check_fps(f).is_ok())
 }
 
 /// The version a served model goes by: its `crossview.version` and the first 12 hex digits

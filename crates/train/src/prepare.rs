@@ -107,13 +107,6 @@ pub fn prepare(
     Ok(filter.apply(set))
 }
 
-/// The frame rate a model file says its training recording had (`crossview.train_fps`, which
-/// [`crate::run::run`] writes), when it records one.
-pub fn trained_fps(meta: &ModelMetadata) -> Option<f64> {
-    let v: serde_json::Value = serde_json::from_str(meta.extra.get(KEY_TRAIN_FPS)?).ok()?;
-    v["fps"].as_f64()
-}
-
 /// The training-box filter a model file says its training used
 /// (`crossview.train_box_filter`, which [`crate::run::run`] writes), when it records one.
 pub fn trained_filter(meta: &ModelMetadata) -> Option<BoxFilter> {
@@ -121,7 +114,7 @@ pub fn trained_filter(meta: &ModelMetadata) -> Option<BoxFilter> {
 }
 
 /// Metadata key of the training recording's frame rate and the step it was thinned by.
-pub(crate) const KEY_TRAIN_FPS: &str = "crossview.train_fps";
+pub(crate) use crossview_model::metadata::KEY_TRAIN_FPS;
 
 /// Metadata key of the training-box filter.
 pub(crate) const KEY_TRAIN_BOX_FILTER: &str = "crossview.train_box_filter";
