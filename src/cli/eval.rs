@@ -11,15 +11,16 @@ use serde::Serialize;
 
 use crossview_core::Encoder;
 use crossview_core::association::{
-    AssociationConfig, FrameAssociation, Mode, associate_frame, embed_frame,
+    AssociationConfig, FrameAssociation, Mode, associate_frame, associate_frame_with, embed_frame,
 };
 use crossview_core::identity::IdentityMethod;
 use crossview_core::matching::Match;
+use crossview_core::memory::{Memory, MemoryConfig};
 use crossview_core::tracking::{Tracker, TrackerConfig};
-use crossview_core::{CameraSpec, Frame, SceneSpec};
+use crossview_core::{CameraSpec, Frame, FrameEmbeddings, SceneSpec};
 use crossview_data::Recording;
 use crossview_data::recording::read_recordings;
-use crossview_eval::driver::evaluate_settings_on;
+use crossview_eval::driver::evaluate_settings_with;
 use crossview_eval::dump::{read_dump, write_dump_on};
 use crossview_eval::metrics::compute_metrics;
 use crossview_eval::parallel::{DEFAULT_WINDOW, map_ordered, worker_count};
@@ -97,6 +98,11 @@ pub struct EvalArgs {
     /// last box is the prediction).
     #[arg(long, default_value_t = TrackerConfig::default().box_velocity_weight)]
     pub track_box_velocity: f32,
+    /// [ours] Identities with memory: the past frames' share of each pair's evidence, carried
+    /// along each camera's tracks in frame order, as `crossview serve` streams do (0: every
+    /// frame alone; docs/method.md, "Identities with memory").
+    #[arg(long, env = "CROSSVIEW_MEMORY", default_value_t = MemoryConfig::default().carry)]
+    pub memory: f32,
 }
 
 /// Arguments of `crossview associate`.
@@ -135,6 +141,10 @@ pub struct AssociateArgs {
     /// the workers, so it also serialises the output.
     #[arg(long)]
     pub tracking: bool,
+    /// [ours] Identities with memory: the past frames' share of each pair's evidence (0: every
+    /// frame alone), as `crossview eval --memory`.
+    #[arg(long, env = "CROSSVIEW_MEMORY", default_value_t = MemoryConfig::default().carry)]
+    pub memory: f32,
 }
 
 /// Checks that the recording's cameras are the model's, in the same order (the encoder's
@@ -313,7 +323,9 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     );
     let mut encoders: Vec<&mut dyn Encoder> =
         encoders.iter_mut().map(|e| e as &mut dyn Encoder).collect();
-    let runs = evaluate_settings_on(&mut encoders, &recording, &base, &settings)?;
+    let memory = MemoryConfig::with_carry(args.memory)?;
+    let runs =
+        evaluate_settings_with(&mut encoders, &recording, &base, &settings, memory.as_ref())?;
     let rows: Vec<TableRow> = runs
         .iter()
         .map(|r| TableRow {
@@ -334,7 +346,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
                 ..TrackerConfig::default()
             };
             let cfg = base.with_mode(Mode::Identities, r.threshold);
-            let t = evaluate_tracking(&mut encoders, &recording, &cfg, &tracker)?;
+            let t = evaluate_tracking(&mut encoders, &recording, &cfg, &tracker, memory.as_ref())?;
             print!("{}", format_tracking(&t));
         }
     }
@@ -452,6 +464,16 @@ fn frame_line(
     Ok(())
 }
 
+/// A frame as a worker leaves it for the sink.
+enum Done {
+    /// Its line, written as is.
+    Line(Vec<u8>),
+    /// Associated; the sink adds the track ids.
+    Associated(FrameAssociation),
+    /// Embedded; the sink associates it with the memory (frame order).
+    Embedded(FrameEmbeddings),
+}
+
 /// Runs `crossview associate`: the frames are dealt to `--workers` threads (one encoder
 /// session each) that embed, associate and format their frames' lines; this thread writes the
 /// lines in frame order.
@@ -473,35 +495,40 @@ pub fn run_associate(args: AssociateArgs) -> anyhow::Result<()> {
     let mut tracker = args
         .tracking
         .then(|| Tracker::new(TrackerConfig::default()));
+    let mut memory = MemoryConfig::with_carry(args.memory)?.map(Memory::new);
     let frames = &recording.frames;
-    let tracking = tracker.is_some();
+    let (tracking, remember) = (tracker.is_some(), memory.is_some());
     map_ordered(
         frames,
         &mut encoders,
         DEFAULT_WINDOW,
-        |encoder, _, frame| -> anyhow::Result<(Vec<u8>, Option<FrameAssociation>)> {
+        |encoder, _, frame| -> anyhow::Result<Done> {
             let embeddings = embed_frame(encoder, scene, frame)?;
+            if remember {
+                // Memory needs frame order: the sink associates this frame.
+                return Ok(Done::Embedded(embeddings));
+            }
             let assoc = associate_frame(frame, embeddings, &cfg);
             if tracking {
                 // Track ids need frame order: the sink writes this frame's line.
-                return Ok((Vec::new(), Some(assoc)));
+                return Ok(Done::Associated(assoc));
             }
             let mut line = Vec::with_capacity(32 * 1024);
             frame_line(&mut line, scene, frame, &assoc, None, cfg.mode)?;
-            Ok((line, None))
+            Ok(Done::Line(line))
         },
-        |i, (mut line, assoc)| {
-            if let (Some(tracker), Some(assoc)) = (tracker.as_mut(), assoc) {
-                let tracks = tracker.update(&frames[i], &assoc.identities, &assoc.embeddings);
-                frame_line(
-                    &mut line,
-                    scene,
-                    &frames[i],
-                    &assoc,
-                    Some(&tracks),
-                    cfg.mode,
-                )?;
-            }
+        |i, done| {
+            let frame = &frames[i];
+            let assoc = match done {
+                Done::Line(line) => return out.write_all(&line).map_err(write_err),
+                Done::Associated(assoc) => assoc,
+                Done::Embedded(e) => associate_frame_with(frame, e, &cfg, memory.as_mut()),
+            };
+            let tracks = tracker
+                .as_mut()
+                .map(|t| t.update(frame, &assoc.identities, &assoc.embeddings));
+            let mut line = Vec::with_capacity(32 * 1024);
+            frame_line(&mut line, scene, frame, &assoc, tracks.as_deref(), cfg.mode)?;
             out.write_all(&line).map_err(write_err)
         },
     )?;

@@ -5,6 +5,7 @@ use std::time::Duration;
 use anyhow::Context;
 use clap::Args;
 
+use crossview_core::memory::MemoryConfig;
 use crossview_core::tracking::TrackerConfig;
 use crossview_serve::config::ClockWatchConfig;
 use crossview_serve::config::SceneDecl;
@@ -185,6 +186,11 @@ pub struct ServeArgs {
     /// ~0.2 ms per crowded frame).
     #[arg(long, env = "CROSSVIEW_NO_TRACKING")]
     pub no_tracking: bool,
+    /// Identities with memory: the past frames' share of each pair's evidence, carried along
+    /// each camera's tracks (0: every frame alone; docs/method.md, "Identities with memory").
+    /// Streamed frames only: a unary associate request is one frame alone.
+    #[arg(long, env = "CROSSVIEW_MEMORY", default_value_t = MemoryConfig::default().carry)]
+    pub memory: f32,
     /// Record every accepted batch (SPEC §7 JSON Lines) under this directory, one
     /// sub-directory per scene of rotating files (docs/serve.md, "Recording").
     #[arg(long, env = "CROSSVIEW_RECORD")]
@@ -453,6 +459,7 @@ impl ServeArgs {
                 gate: self.track_gate,
                 ..TrackerConfig::default()
             }),
+            memory: MemoryConfig::with_carry(self.memory)?,
             record: self.record.as_ref().map(|dir| RecordConfig {
                 dir: dir.clone(),
                 max_file_bytes: self.record_max_file_bytes,

@@ -43,6 +43,11 @@ pub struct SimulateArgs {
     /// Target crowd density in people per m² of the area (instead of --people).
     #[arg(long)]
     pub density: Option<f64>,
+    /// Probability that a person reaching a goal joins the nearest person within 6 m and walks
+    /// beside them for 5–20 s before leaving on their own (groups that form and split; 0 =
+    /// everyone walks alone).
+    #[arg(long, default_value_t = 0.0)]
+    pub groups: f64,
     /// Frames per second, declared in the recording's header (`crossview train` reads it
     /// there).
     #[arg(long, default_value_t = 10.0)]
@@ -112,6 +117,7 @@ impl SimulateArgs {
             }
             cfg.people.count = (d * cfg.scene.area[0] * cfg.scene.area[1]).round() as usize;
         }
+        cfg.people.group_prob = self.groups;
         if self.clean {
             cfg.detector = DetectorNoise::none();
             cfg.render.shrink_occluded = false;

@@ -7,6 +7,7 @@ use crate::distances::{all_pairs_distances, euclidean_distances};
 use crate::identity::{Identity, IdentityConfig, build_identities, identity_matches};
 pub use crate::matching::ViewPair;
 use crate::matching::match_from_distances;
+use crate::memory::Memory;
 use crate::{Error, Result};
 use crate::{Frame, FrameEmbeddings, SceneSpec};
 
@@ -198,7 +199,18 @@ pub fn associate_frame(
     embeddings: FrameEmbeddings,
     cfg: &AssociationConfig,
 ) -> FrameAssociation {
-    let (sizes, mut pairs) = match_pairs(frame, &embeddings, cfg, &[]);
+    associate_frame_with(frame, embeddings, cfg, None)
+}
+
+/// [`associate_frame`] with the scene's [`Memory`] (frames given in frame order): the pairs'
+/// distances carry what the past said along each camera's tracks (see [`crate::memory`]).
+pub fn associate_frame_with(
+    frame: &Frame,
+    embeddings: FrameEmbeddings,
+    cfg: &AssociationConfig,
+    memory: Option<&mut Memory>,
+) -> FrameAssociation {
+    let (sizes, mut pairs) = match_pairs(frame, &embeddings, cfg, &[], memory);
     let identities = build_identities(&sizes, &pairs, &cfg.identity);
     match cfg.mode {
         Mode::Pairwise => {}
@@ -241,7 +253,19 @@ pub fn frame_identities_fenced(
     cfg: &AssociationConfig,
     fenced: &[bool],
 ) -> Vec<Identity> {
-    let (sizes, pairs) = match_pairs(frame, embeddings, cfg, fenced);
+    frame_identities_with(frame, embeddings, cfg, fenced, None)
+}
+
+/// [`frame_identities_fenced`] with the scene's [`Memory`] (frames given in frame order; a
+/// fenced camera's memory is dropped): what the service returns.
+pub fn frame_identities_with(
+    frame: &Frame,
+    embeddings: &FrameEmbeddings,
+    cfg: &AssociationConfig,
+    fenced: &[bool],
+    memory: Option<&mut Memory>,
+) -> Vec<Identity> {
+    let (sizes, pairs) = match_pairs(frame, embeddings, cfg, fenced, memory);
     build_identities(&sizes, &pairs, &cfg.identity)
 }
 
@@ -257,16 +281,17 @@ pub fn associate_pairs(
     embeddings: &FrameEmbeddings,
     cfg: &AssociationConfig,
 ) -> Vec<ViewPair> {
-    match_pairs(frame, embeddings, cfg, &[]).1
+    match_pairs(frame, embeddings, cfg, &[], None).1
 }
 
 /// Per-view box counts (0 for unusable views) and the pairwise matchings of the views not
-/// `fenced`.
+/// `fenced`, their distances blended with `memory`'s when given.
 fn match_pairs(
     frame: &Frame,
     embeddings: &FrameEmbeddings,
     cfg: &AssociationConfig,
     fenced: &[bool],
+    mut memory: Option<&mut Memory>,
 ) -> (Vec<usize>, Vec<ViewPair>) {
     let nv = embeddings.num_views().min(frame.views.len());
     let sizes: Vec<usize> = (0..nv)
@@ -299,10 +324,21 @@ fn match_pairs(
         .collect();
     let rows: Vec<_> = cams.iter().filter_map(|&c| embeddings.rows(c)).collect();
     let mut dists = all_pairs_distances(embeddings.matrix(), &rows).into_iter();
+    if let Some(m) = memory.as_deref_mut() {
+        m.begin(
+            frame.frame_id,
+            &usable_views(frame, &sizes),
+            embeddings,
+            fenced,
+        );
+    }
     let mut pairs = Vec::with_capacity(dists.len());
     for (x, &a) in cams.iter().enumerate() {
         for &b in &cams[x + 1..] {
-            let Some(dg) = dists.next() else { break };
+            let Some(mut dg) = dists.next() else { break };
+            if let Some(m) = memory.as_deref_mut() {
+                m.blend(a, b, &mut dg, &cfg.identity);
+            }
             let da = match (&apps[a], &apps[b]) {
                 (Some(p), Some(q)) if p.ncols() == q.ncols() => {
                     Some(euclidean_distances(p.view(), q.view()))
@@ -317,7 +353,23 @@ fn match_pairs(
             });
         }
     }
+    if let Some(m) = memory {
+        m.end();
+    }
     (sizes, pairs)
+}
+
+/// Each view's boxes (pixels) where the view is usable (`sizes[c]` boxes, possibly none);
+/// `None` for views that did not report or cannot be used.
+fn usable_views(frame: &Frame, sizes: &[usize]) -> Vec<Option<Vec<[f32; 4]>>> {
+    sizes
+        .iter()
+        .zip(&frame.views)
+        .map(|(&n, v)| {
+            let v = v.as_ref()?;
+            (v.len() == n).then(|| v.iter().map(|d| d.bbox).collect())
+        })
+        .collect()
 }
 
 #[cfg(test)]

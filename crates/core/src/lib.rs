@@ -16,6 +16,8 @@ pub mod identity;
 pub mod integral;
 pub(crate) mod lsa;
 pub mod matching;
+pub mod memory;
+pub(crate) mod motion;
 pub mod offsets;
 #[cfg(any(test, feature = "testing"))]
 pub mod testing;

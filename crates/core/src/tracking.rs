@@ -25,6 +25,7 @@ use crate::distances::euclidean_distances;
 use crate::embeddings::FrameEmbeddings;
 use crate::identity::Identity;
 use crate::lsa;
+use crate::motion::{MovingBox, iou};
 use crate::types::Frame;
 
 /// How identities are linked over time.
@@ -69,46 +70,9 @@ struct Track {
     /// Centroid change per frame (smoothed).
     velocity: Vec<f32>,
     /// The track's box in each camera, for the image cue.
-    boxes: Vec<Option<CameraBox>>,
+    boxes: Vec<Option<MovingBox>>,
     /// Frames since the track was last matched (0 = this frame).
     unseen: u32,
-}
-
-/// A track's last box in one camera (pixels) and its motion.
-#[derive(Debug, Clone)]
-struct CameraBox {
-    bbox: [f32; 4],
-    /// Change of each coordinate per frame (smoothed).
-    velocity: [f32; 4],
-    /// Frames since the box was seen (0 = this frame).
-    unseen: u32,
-}
-
-impl CameraBox {
-    fn new(bbox: [f32; 4]) -> Self {
-        CameraBox {
-            bbox,
-            velocity: [0.0; 4],
-            unseen: 0,
-        }
-    }
-
-    /// Where the box is expected this frame.
-    fn predicted(&self) -> [f32; 4] {
-        let k = (self.unseen + 1) as f32;
-        std::array::from_fn(|i| self.bbox[i] + k * self.velocity[i])
-    }
-
-    /// The box seen again at `bbox`; its velocity follows the observed motion by `weight`.
-    fn observe(&mut self, bbox: [f32; 4], weight: f32) {
-        let k = (self.unseen + 1) as f32;
-        for ((v, new), old) in self.velocity.iter_mut().zip(bbox).zip(self.bbox) {
-            let moved = (new - old) / k;
-            *v += weight * (moved - *v);
-        }
-        self.bbox = bbox;
-        self.unseen = 0;
-    }
 }
 
 impl Track {
@@ -116,7 +80,7 @@ impl Track {
     fn predicted_boxes(&self) -> Vec<Option<[f32; 4]>> {
         self.boxes
             .iter()
-            .map(|b| b.as_ref().map(CameraBox::predicted))
+            .map(|b| b.as_ref().map(MovingBox::predicted))
             .collect()
     }
 
@@ -204,7 +168,7 @@ impl Tracker {
                     for (last, new) in track.boxes.iter_mut().zip(b) {
                         match (last.as_mut(), new) {
                             (Some(last), Some(new)) => last.observe(new, bw),
-                            (None, Some(new)) => *last = Some(CameraBox::new(new)),
+                            (None, Some(new)) => *last = Some(MovingBox::new(new)),
                             _ => {}
                         }
                     }
@@ -237,7 +201,7 @@ impl Tracker {
                     if let Some(c) = c {
                         self.tracks.push(Track {
                             id: tid,
-                            boxes: b.into_iter().map(|b| b.map(CameraBox::new)).collect(),
+                            boxes: b.into_iter().map(|b| b.map(MovingBox::new)).collect(),
                             velocity: vec![0.0; c.len()],
                             centroid: c,
                             unseen: 0,
@@ -334,18 +298,6 @@ fn mean_iou(a: &[Option<[f32; 4]>], b: &[Option<[f32; 4]>]) -> f32 {
         }
     }
     if n == 0 { 0.0 } else { sum / n as f32 }
-}
-
-fn iou(a: &[f32; 4], b: &[f32; 4]) -> f32 {
-    let w = (a[2].min(b[2]) - a[0].max(b[0])).max(0.0);
-    let h = (a[3].min(b[3]) - a[1].max(b[1])).max(0.0);
-    let inter = w * h;
-    let union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter;
-    if union > 0.0 && inter.is_finite() {
-        inter / union
-    } else {
-        0.0
-    }
 }
 
 /// Mean embedding of an identity's members (`None` when none of them has a row).

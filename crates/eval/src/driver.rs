@@ -5,10 +5,11 @@ use crate::metrics::{Metrics, PairRecord, compute_metrics};
 use crate::parallel::{DEFAULT_WINDOW, map_ordered};
 use crossview_core::Encoder;
 use crossview_core::association::{
-    AssociationConfig, FrameAssociation, Mode, associate_frame, embed_frame,
+    AssociationConfig, FrameAssociation, Mode, associate_frame_with, embed_frame,
 };
 use crossview_core::identity::identity_matches;
 use crossview_core::matching::Match;
+use crossview_core::memory::{Memory, MemoryConfig};
 use crossview_core::{Error, Result};
 use crossview_core::{Frame, SceneSpec};
 use crossview_data::Recording;
@@ -124,6 +125,20 @@ pub fn evaluate_settings_on(
     base: &AssociationConfig,
     settings: &[(Mode, f32)],
 ) -> Result<Vec<EvalRun>> {
+    evaluate_settings_with(encoders, recording, base, settings, None)
+}
+
+/// [`evaluate_settings_on`] with identities that remember the past frames: each
+/// [`Mode::Identities`] setting its own [`Memory`], fed in frame order as the server feeds a
+/// scene's (`None`: each frame alone). The pairwise rows stay SPEC §3's, frame by frame. With
+/// memory the frames are embedded on the workers and associated in frame order.
+pub fn evaluate_settings_with(
+    encoders: &mut [&mut dyn Encoder],
+    recording: &Recording,
+    base: &AssociationConfig,
+    settings: &[(Mode, f32)],
+    memory: Option<&MemoryConfig>,
+) -> Result<Vec<EvalRun>> {
     if settings.is_empty() {
         return Err(Error::invalid("settings", "no evaluation setting given"));
     }
@@ -140,27 +155,44 @@ pub fn evaluate_settings_on(
     let scene = &recording.scene;
     let mut records: Vec<Vec<PairRecord>> = vec![Vec::new(); settings.len()];
     let mut stats = vec![IdentityStats::default(); settings.len()];
-    // Per frame and setting: the image-pair records and the frame's identity scores.
+    let mut memories: Vec<Option<Memory>> = configs
+        .iter()
+        .map(|c| {
+            memory
+                .filter(|_| c.mode == Mode::Identities)
+                .map(|m| Memory::new(m.clone()))
+        })
+        .collect();
+    let remember = memories.iter().any(Option::is_some);
+    // Per frame: its ids and embeddings, and (without memory) every setting's scores.
     let frame_work = |encoder: &mut &mut dyn Encoder, _: usize, frame: &Frame| {
         let ids = frame_ids(scene, frame)?;
         let embeddings = embed_frame(*encoder, scene, frame)?;
-        Ok(configs
-            .iter()
-            .map(|cfg| {
-                let assoc = associate_frame(frame, embeddings.clone(), cfg);
-                let mut frame_stats = IdentityStats::default();
-                frame_stats.add_frame(&assoc.identities, &ids);
-                (pair_records(scene, &ids, &assoc), frame_stats)
-            })
-            .collect::<Vec<_>>())
+        let scored: Vec<_> = if remember {
+            Vec::new()
+        } else {
+            configs
+                .iter()
+                .map(|cfg| score(scene, frame, &ids, embeddings.clone(), cfg, None))
+                .collect()
+        };
+        Ok((ids, embeddings, scored))
     };
     map_ordered(
         &recording.frames,
         encoders,
         DEFAULT_WINDOW,
         frame_work,
-        |_, per_setting| {
-            for (k, (frame_records, frame_stats)) in per_setting.into_iter().enumerate() {
+        |i, (ids, embeddings, mut scored)| {
+            if remember {
+                let frame = &recording.frames[i];
+                scored = configs
+                    .iter()
+                    .zip(memories.iter_mut())
+                    .map(|(cfg, m)| score(scene, frame, &ids, embeddings.clone(), cfg, m.as_mut()))
+                    .collect();
+            }
+            for (k, (frame_records, frame_stats)) in scored.into_iter().enumerate() {
                 records[k].extend(frame_records);
                 stats[k].merge(&frame_stats);
             }
@@ -198,6 +230,21 @@ pub fn evaluate_settings_on(
             }
         })
         .collect())
+}
+
+/// One setting's image-pair records and identity scores of one frame.
+fn score(
+    scene: &SceneSpec,
+    frame: &Frame,
+    ids: &[Option<Vec<u64>>],
+    embeddings: crossview_core::FrameEmbeddings,
+    cfg: &AssociationConfig,
+    memory: Option<&mut Memory>,
+) -> (Vec<PairRecord>, IdentityStats) {
+    let assoc = associate_frame_with(frame, embeddings, cfg, memory);
+    let mut frame_stats = IdentityStats::default();
+    frame_stats.add_frame(&assoc.identities, ids);
+    (pair_records(scene, ids, &assoc), frame_stats)
 }
 
 /// Evaluates `encoder` on `recording` with one configuration: the metrics of `cfg.mode`'s

@@ -14,8 +14,9 @@ use std::collections::HashMap;
 
 use serde::Serialize;
 
-use crossview_core::association::{AssociationConfig, embed_frame, frame_identities};
+use crossview_core::association::{AssociationConfig, embed_frame, frame_identities_with};
 use crossview_core::matching::hungarian;
+use crossview_core::memory::{Memory, MemoryConfig};
 use crossview_core::tracking::{Tracker, TrackerConfig};
 use crossview_core::{Encoder, Error, Frame, Result};
 use crossview_data::Recording;
@@ -52,22 +53,27 @@ pub struct TrackingReport {
 /// One scored box: camera index, ground-truth id, track id.
 pub type Observation = (usize, u64, u64);
 
-/// Associates every frame of `recording` (ids required) with `cfg`, tracks its identities
-/// with a fresh [`Tracker`] in frame order, and scores the track ids. Frames are embedded and
-/// associated on one worker per encoder; the tracker sees them in frame order.
+/// Associates every frame of `recording` (ids required) with `cfg` (and, when given, a
+/// [`Memory`] of the past frames, as the server's streams), tracks its identities with a fresh
+/// [`Tracker`] in frame order, and scores the track ids. Frames are embedded (and, without
+/// memory, associated) on one worker per encoder; the tracker sees them in frame order.
 pub fn evaluate_tracking(
     encoders: &mut [&mut dyn Encoder],
     recording: &Recording,
     cfg: &AssociationConfig,
     tracker: &TrackerConfig,
+    memory: Option<&MemoryConfig>,
 ) -> Result<TrackingReport> {
     let scene = &recording.scene;
     let mut tracker = Tracker::new(tracker.clone());
+    let mut memory = memory.map(|m| Memory::new(m.clone()));
+    let remember = memory.is_some();
     let mut obs: Vec<Observation> = Vec::new();
     let work = |encoder: &mut &mut dyn Encoder, _: usize, frame: &Frame| {
         let truth = frame_ids(scene, frame)?;
         let embeddings = embed_frame(*encoder, scene, frame)?;
-        let identities = frame_identities(frame, &embeddings, cfg);
+        let identities =
+            (!remember).then(|| frame_identities_with(frame, &embeddings, cfg, &[], None));
         Ok::<_, Error>((truth, embeddings, identities))
     };
     map_ordered(
@@ -76,6 +82,10 @@ pub fn evaluate_tracking(
         DEFAULT_WINDOW,
         work,
         |i, (truth, embeddings, identities)| {
+            let identities = identities.unwrap_or_else(|| {
+                let frame = &recording.frames[i];
+                frame_identities_with(frame, &embeddings, cfg, &[], memory.as_mut())
+            });
             let tracks = tracker.update(&recording.frames[i], &identities, &embeddings);
             for (identity, track) in identities.iter().zip(tracks) {
                 for &(c, i) in &identity.members {

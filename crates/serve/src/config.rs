@@ -4,6 +4,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use crate::error::{Error, Result};
+use crossview_core::memory::MemoryConfig;
 use crossview_core::tracking::TrackerConfig;
 use crossview_core::{CameraSpec, SceneSpec};
 
@@ -375,6 +376,9 @@ pub struct ServeConfig {
     /// How each scene links its identities over time into track ids; `None` tracks nothing
     /// (streamed identities then carry no `track_id`).
     pub tracker: Option<TrackerConfig>,
+    /// How each scene's streamed identities remember the past frames
+    /// ([`crossview_core::memory`]); `None`: each frame alone.
+    pub memory: Option<MemoryConfig>,
     /// Record every accepted batch ([`super::record`]) when set.
     pub record: Option<super::record::RecordConfig>,
     /// Kafka mode ([`crate::transport::kafka`]) beside gRPC and HTTP, when set.
@@ -404,6 +408,7 @@ impl std::fmt::Debug for ServeConfig {
             .field("connections", &self.connections)
             .field("shutdown_grace", &self.shutdown_grace)
             .field("tracker", &self.tracker)
+            .field("memory", &self.memory)
             .field("record", &self.record)
             .field("kafka", &self.kafka)
             .field("inference_threads", &self.inference_threads)
@@ -427,6 +432,7 @@ impl Default for ServeConfig {
             connections: ConnectionLimits::default(),
             shutdown_grace: Duration::from_secs(10),
             tracker: Some(TrackerConfig::default()),
+            memory: Some(MemoryConfig::default()),
             record: None,
             kafka: None,
             inference_threads: 0,

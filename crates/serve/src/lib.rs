@@ -168,6 +168,7 @@ impl Server {
                 max_pending_frames: config.max_pending_frames,
                 limits: config.limits,
                 tracker: config.tracker.clone(),
+                memory: config.memory.clone(),
                 pool: pool.clone(),
                 fps: rate.clock,
                 time_tolerance: config.time_tolerance,

@@ -21,6 +21,9 @@ pub struct PeopleConfig {
     pub pause_prob: f64,
     /// Probability of walking out of the area on reaching a goal (turnover).
     pub exit_prob: f64,
+    /// Probability, on reaching a goal, of joining the nearest person within 6 m and walking
+    /// beside them for 5–20 s before leaving on one's own (groups that form and split).
+    pub group_prob: f64,
 }
 
 impl Default for PeopleConfig {
@@ -32,6 +35,7 @@ impl Default for PeopleConfig {
             width: [0.42, 0.58],
             pause_prob: 0.25,
             exit_prob: 0.15,
+            group_prob: 0.0,
         }
     }
 }
@@ -81,10 +85,17 @@ impl PeopleConfig {
         for (name, p) in [
             ("people.pause_prob", self.pause_prob),
             ("people.exit_prob", self.exit_prob),
+            ("people.group_prob", self.group_prob),
         ] {
             if !(0.0..=1.0).contains(&p) {
                 return Err(Error::invalid(name, format!("must be in [0, 1], got {p}")));
             }
+        }
+        if self.exit_prob + self.pause_prob + self.group_prob > 1.0 {
+            return Err(Error::invalid(
+                "people.group_prob",
+                "exit, pause and group probabilities must add up to at most 1",
+            ));
         }
         Ok(())
     }
@@ -107,6 +118,8 @@ pub struct Person {
     speed: f64,
     pause_left: f64,
     exiting: bool,
+    /// Walking beside another person: their id and the seconds left.
+    beside: Option<(u64, f64)>,
     /// Gait phase in radians (legs and arms swing twice per stride).
     phase: f64,
 }
@@ -124,6 +137,7 @@ impl Person {
             speed: 0.0,
             pause_left: f64::INFINITY,
             exiting: false,
+            beside: None,
             phase: 0.0,
         }
     }
@@ -258,6 +272,7 @@ impl Crowd {
             speed,
             pause_left: 0.0,
             exiting: false,
+            beside: None,
             phase: rng.random_range(0.0..std::f64::consts::TAU),
         };
         self.next_id += 1;
@@ -265,6 +280,7 @@ impl Crowd {
     }
 
     fn substep(&mut self, h: f64, rng: &mut ChaCha8Rng) {
+        self.follow(h, rng);
         let n = self.people.len();
         let mut forces = vec![[0.0f64; 2]; n];
         for (i, f) in forces.iter_mut().enumerate() {
@@ -326,13 +342,66 @@ impl Crowd {
         }
     }
 
+    /// People walking beside someone aim at a spot 0.6 m to their side; when their time is
+    /// up or the other has left, they walk off to a goal of their own.
+    fn follow(&mut self, h: f64, rng: &mut ChaCha8Rng) {
+        for i in 0..self.people.len() {
+            let Some((other, left)) = self.people[i].beside else {
+                continue;
+            };
+            let lead = self.people.iter().find(|o| o.id == other && !o.exiting);
+            let spot = lead.map(|o| {
+                let v = o.vel[0].hypot(o.vel[1]).max(1e-9);
+                let side = [-o.vel[1] / v, o.vel[0] / v];
+                let p = &self.people[i];
+                let s = if (p.pos[0] - o.pos[0]) * side[0] + (p.pos[1] - o.pos[1]) * side[1] >= 0.0
+                {
+                    0.6
+                } else {
+                    -0.6
+                };
+                [
+                    o.pos[0] + s * side[0] + 0.3 * o.vel[0],
+                    o.pos[1] + s * side[1] + 0.3 * o.vel[1],
+                ]
+            });
+            match spot {
+                Some(spot) if left > h => {
+                    let p = &mut self.people[i];
+                    p.goal = spot;
+                    p.beside = Some((other, left - h));
+                }
+                _ => {
+                    let goal = self.random_inside(rng);
+                    let p = &mut self.people[i];
+                    p.goal = goal;
+                    p.beside = None;
+                }
+            }
+        }
+    }
+
+    /// The nearest person within 6 m of person `i` who is neither leaving nor walking beside
+    /// someone.
+    fn companion(&self, i: usize) -> Option<u64> {
+        let p = &self.people[i];
+        self.people
+            .iter()
+            .enumerate()
+            .filter(|&(j, o)| j != i && !o.exiting && o.beside.is_none())
+            .map(|(_, o)| (o.id, (o.pos[0] - p.pos[0]).hypot(o.pos[1] - p.pos[1])))
+            .filter(|&(_, d)| d < 6.0)
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+            .map(|(id, _)| id)
+    }
+
     fn turnover(&mut self, dt: f64, rng: &mut ChaCha8Rng) {
         let [w, d] = self.area;
-        // goals reached: pause, leave or pick a new goal
+        // goals reached: pause, leave, join someone or pick a new goal
         for i in 0..self.people.len() {
             let p = &self.people[i];
             let reached = (p.goal[0] - p.pos[0]).hypot(p.goal[1] - p.pos[1]) < 0.5;
-            if !reached || p.pause_left > 0.0 || p.exiting {
+            if !reached || p.pause_left > 0.0 || p.exiting || p.beside.is_some() {
                 continue;
             }
             let u: f64 = rng.random();
@@ -347,6 +416,10 @@ impl Crowd {
                 let p = &mut self.people[i];
                 p.pause_left = pause;
                 p.goal = goal;
+            } else if u < self.cfg.exit_prob + self.cfg.pause_prob + self.cfg.group_prob
+                && let Some(other) = self.companion(i)
+            {
+                self.people[i].beside = Some((other, rng.random_range(5.0..20.0)));
             } else {
                 let goal = self.random_inside(rng);
                 self.people[i].goal = goal;

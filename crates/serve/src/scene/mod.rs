@@ -33,6 +33,7 @@ use tokio::sync::{Notify, broadcast, oneshot};
 
 use crossview_api::types::{ClockEstimate, FitEstimate, SceneDescription};
 use crossview_core::capture::{CaptureTime, Ticks};
+use crossview_core::memory::MemoryConfig;
 use crossview_core::tracking::{Tracker, TrackerConfig};
 use crossview_core::{Detection, Encoder, SceneSpec};
 
@@ -45,6 +46,7 @@ use crate::sync::{Rejection, Synchronizer};
 mod admission;
 mod clock;
 mod fit;
+mod memory;
 mod placement;
 mod pool;
 mod priority;
@@ -78,6 +80,8 @@ pub struct SceneOptions {
     pub limits: Limits,
     /// Track ids over time (`None`: off).
     pub tracker: Option<TrackerConfig>,
+    /// Identities with memory of the past frames (`None`: each frame alone).
+    pub memory: Option<MemoryConfig>,
     /// The inference pool the scene's work runs on (shared by the server's scenes).
     pub(crate) pool: Arc<Pool>,
     /// The scene's frame rate (`@10fps`, a recording header's `fps`, the model's training
@@ -163,6 +167,7 @@ impl Scene {
             max_pending_frames: max_pending,
             limits,
             tracker,
+            memory,
             pool,
             fps,
             time_tolerance,
@@ -194,6 +199,7 @@ impl Scene {
             close_by: close_by.clone(),
             published: published.clone(),
             tracker: tracker.map(Tracker::new),
+            memory: memory.map(|m| memory::SceneMemory::new(m, offsets.clone())),
             clock: clock::ClockWatch::start(
                 &spec,
                 limits.clock_watch,

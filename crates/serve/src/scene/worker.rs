@@ -17,7 +17,7 @@ use tokio::sync::{broadcast, oneshot};
 
 use crossview_api::convert::{frame_boxes, identity_out};
 use crossview_api::types::{FrameResult, FrameWithBoxes, IdentityOut, ResultStatus};
-use crossview_core::association::{embed_frame, frame_identities_fenced};
+use crossview_core::association::{embed_frame, frame_identities_with};
 use crossview_core::capture::Ticks;
 use crossview_core::identity::Identity;
 use crossview_core::tracking::Tracker;
@@ -75,6 +75,9 @@ pub(super) struct Worker {
     /// Track ids for the synchronized frames, in frame order (unary frames are not tracked;
     /// `None`: tracking is off).
     pub(super) tracker: Option<Tracker>,
+    /// What the past streamed frames said about each pair of people (`None`: each frame
+    /// alone; unary frames never use it).
+    pub(super) memory: Option<super::memory::SceneMemory>,
     /// The live clock watch (`None`: off).
     pub(super) clock: Option<super::clock::ClockWatch>,
     /// Cameras the watch found no longer fitting the model, left out of association
@@ -127,7 +130,7 @@ impl Worker {
                 let r = self
                     .check_grace()
                     .and_then(|()| self.check_queue_wait(waited))
-                    .and_then(|()| self.associate(&frame))
+                    .and_then(|()| self.associate(&frame, false))
                     .map(|(ids, _)| {
                         let spec = &self.spec;
                         let ids = ids.into_iter().map(|id| identity_out(spec, id, None));
@@ -188,6 +191,9 @@ impl Worker {
         if let Some(t) = &mut self.tracker {
             t.end_tracks();
         }
+        if let Some(m) = &mut self.memory {
+            m.clear();
+        }
         if let Some(c) = &mut self.clock {
             c.reset();
         }
@@ -208,7 +214,10 @@ impl Worker {
             r.status = ResultStatus::NoModel;
             return (r, None);
         }
-        match self.check_grace().and_then(|()| self.associate(frame)) {
+        match self
+            .check_grace()
+            .and_then(|()| self.associate(frame, true))
+        {
             Ok((ids, embeddings)) => {
                 let tracks = match &mut self.tracker {
                     Some(tracker) => tracker
@@ -265,9 +274,14 @@ impl Worker {
         }
     }
 
-    /// Embeds the frame in one encoder call and builds its identities (SPEC §3); a panic in
-    /// the method becomes a [`crossview_core::Error::Internal`] instead of taking the scene down.
-    fn associate(&mut self, frame: &Frame) -> Result<(Vec<Identity>, FrameEmbeddings)> {
+    /// Embeds the frame in one encoder call and builds its identities (SPEC §3), with the
+    /// scene's memory when `streamed` (a unary frame is associated alone); a panic in the
+    /// method becomes a [`crossview_core::Error::Internal`] instead of taking the scene down.
+    fn associate(
+        &mut self,
+        frame: &Frame,
+        streamed: bool,
+    ) -> Result<(Vec<Identity>, FrameEmbeddings)> {
         let spec = &self.spec;
         let model = self
             .model
@@ -278,10 +292,14 @@ impl Worker {
         let config = &model.info.association;
         self.fenced_now = super::fit::fenced(&self.fenced);
         let fenced = &self.fenced_now;
+        let memory = match (&mut self.memory, streamed) {
+            (Some(m), true) => Some(m.for_frame()),
+            _ => None,
+        };
         let outcome: crossview_core::Result<_> =
             std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
                 let embeddings = embed_frame(encoder, spec, frame)?;
-                let identities = frame_identities_fenced(frame, &embeddings, config, fenced);
+                let identities = frame_identities_with(frame, &embeddings, config, fenced, memory);
                 Ok((identities, embeddings))
             }))
             .unwrap_or_else(|_| Err(crossview_core::Error::internal("association panicked")));
