@@ -7,7 +7,8 @@ use std::sync::Arc;
 use criterion::measurement::{Measurement, ValueFormatter, WallTime};
 use criterion::{BatchSize, Criterion, Throughput, criterion_group, criterion_main};
 use crossview_core::association::{
-    AssociationConfig, Mode, ViewPair, associate_frame, frame_identities,
+    AssociationConfig, Mode, ViewPair, associate_frame, associate_frame_with, frame_identities,
+    frame_identities_with,
 };
 use crossview_core::calibration::Calibration;
 use crossview_core::distances::{
@@ -15,6 +16,7 @@ use crossview_core::distances::{
 };
 use crossview_core::identity::{IdentityConfig, IdentityMethod, build_identities};
 use crossview_core::matching::{hungarian, match_from_distances};
+use crossview_core::memory::{Memory, MemoryConfig};
 use crossview_core::tracking::{Tracker, TrackerConfig};
 use crossview_core::{Detection, Frame, FrameEmbeddings};
 use ndarray::Array2;
@@ -285,6 +287,41 @@ fn bench<M: Measurement>(c: &mut Criterion<M>, group: &str, dim: usize) {
     });
     g.bench_function("frame_identities_calibrated", |b| {
         b.iter(|| black_box(frame_identities(&frame, black_box(&embs), &calibrated)))
+    });
+    // With memory (what the server's streams run): the same frame again under the next frame
+    // id, so every box continues its track and every pair's remembered distance is blended.
+    let remembered = AssociationConfig {
+        mode: Mode::Identities,
+        ..calibrated.clone()
+    };
+    let mut memory = Memory::new(MemoryConfig::default());
+    let mut next = frame.clone();
+    g.bench_function("associate_frame_identities_calibrated_memory", |b| {
+        b.iter_batched(
+            || embs.clone(),
+            |e| {
+                next.frame_id += 1;
+                black_box(associate_frame_with(
+                    &next,
+                    e,
+                    &remembered,
+                    Some(&mut memory),
+                ))
+            },
+            BatchSize::PerIteration,
+        )
+    });
+    g.bench_function("frame_identities_calibrated_memory", |b| {
+        b.iter(|| {
+            next.frame_id += 1;
+            black_box(frame_identities_with(
+                &next,
+                black_box(&embs),
+                &calibrated,
+                &[],
+                Some(&mut memory),
+            ))
+        })
     });
     // Tracking's share of a frame: one tracker update with the frame's identities against
     // the tracks of the frames before (the same frame again: everyone continues a track).

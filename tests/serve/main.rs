@@ -15,6 +15,7 @@ mod frame_ids;
 mod fuzz;
 mod grpc_push_stream;
 mod late_duplicate;
+mod memory;
 mod metrics_labels;
 mod model_swap;
 mod ndjson_bounds;

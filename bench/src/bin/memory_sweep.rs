@@ -56,6 +56,8 @@ struct Row {
     idf1_min: f64,
     /// Per frame, the pairs of ground-truth ids that one identity merged.
     merges: Vec<Vec<(u64, u64)>>,
+    /// Mean time of `associate_frame_with` per frame (µs).
+    micros: f64,
 }
 
 /// The pairs of distinct ground-truth ids that share an identity.
@@ -99,9 +101,13 @@ fn run(
     let (mut linked, mut right, mut continuing, mut found) = (0usize, 0usize, 0usize, 0usize);
     let mut last_ids: HashMap<usize, Vec<u64>> = HashMap::new();
     let mut merges = Vec::new();
+    let mut spent = std::time::Duration::ZERO;
     for (frame, emb) in rec.frames.iter().zip(embs) {
         let ids = frame_ids(&rec.scene, frame)?;
-        let assoc = associate_frame_with(frame, emb.clone(), base, memory.as_mut());
+        let e = emb.clone();
+        let t0 = std::time::Instant::now();
+        let assoc = associate_frame_with(frame, e, base, memory.as_mut());
+        spent += t0.elapsed();
         stats.add_frame(&assoc.identities, &ids);
         merges.push(merged_pairs(&assoc.identities, &ids));
         records.extend(pair_records(&rec.scene, &ids, &assoc));
@@ -143,6 +149,7 @@ fn run(
         idf1: 100.0 * t.multi_camera.idf1,
         idf1_min: 100.0 * t.per_camera.iter().map(|(_, s)| s.idf1).fold(1.0, f64::min),
         merges,
+        micros: spent.as_secs_f64() * 1e6 / rec.frames.len().max(1) as f64,
     })
 }
 
@@ -212,9 +219,9 @@ fn main() -> anyhow::Result<()> {
         args[0]
     );
     println!(
-        "| carry λ | hold | link weight | link gate | link margin | ACC % | IPAA-100 % | identities right % | links precise % | links found % | IDF1 % | worst camera IDF1 % | merged pair-frames | of them not merged alone |"
+        "| carry λ | hold | link weight | link gate | link margin | ACC % | IPAA-100 % | identities right % | links precise % | links found % | IDF1 % | worst camera IDF1 % | merged pair-frames | of them not merged alone | association µs / frame |"
     );
-    println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     let alone = run(&rec, &embs, &base, None)?;
     for s in &settings {
         let r = run(&rec, &embs, &base, s.as_ref())?;
@@ -232,8 +239,8 @@ fn main() -> anyhow::Result<()> {
             )
         });
         println!(
-            "{cols}| {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {total} | {extra} |",
-            r.acc, r.ipaa, r.right, r.link_precision, r.link_recall, r.idf1, r.idf1_min
+            "{cols}| {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {total} | {extra} | {:.0} |",
+            r.acc, r.ipaa, r.right, r.link_precision, r.link_recall, r.idf1, r.idf1_min, r.micros
         );
     }
     Ok(())

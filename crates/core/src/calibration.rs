@@ -139,6 +139,22 @@ impl Calibration {
         p0 + (p1 - p0) * (d - x0) / (x1 - x0)
     }
 
+    /// The largest distance whose probability is at least `p` (the table is non-increasing,
+    /// so `probability(d) ≥ p` exactly when `d ≤ reach(p)`): `+∞` when even the farthest knot
+    /// reaches `p`, `−∞` when not even the nearest does (or `p` is NaN).
+    pub fn reach(&self, p: f32) -> f32 {
+        let (xs, ps) = (&self.distances, &self.probabilities);
+        match (ps.first(), ps.last()) {
+            (Some(_), Some(&last)) if last >= p => f32::INFINITY,
+            (Some(&first), _) if first >= p => {
+                let k = ps.partition_point(|&q| q >= p);
+                let (x0, x1, p0, p1) = (xs[k - 1], xs[k], ps[k - 1], ps[k]);
+                x0 + (x1 - x0) * (p0 - p) / (p0 - p1)
+            }
+            _ => f32::NEG_INFINITY,
+        }
+    }
+
     /// Checks the table's invariants (what a model file must hold to be trusted).
     pub fn validate(&self) -> Result<()> {
         let bad = |why: String| Error::invalid("calibration", why);

@@ -74,6 +74,18 @@ pub struct Server {
     hangup: Option<tokio::signal::unix::Signal>,
 }
 
+/// Logs a scene as it starts: its model's version, or that it has none yet.
+fn log_scene(spec: &crossview_core::SceneSpec, model: Option<&SceneInfo>) {
+    match model {
+        Some(info) => {
+            tracing::info!(scene = %spec.name, cameras = spec.cameras.len(), version = %info.version, "scene loaded")
+        }
+        None => {
+            tracing::info!(scene = %spec.name, cameras = spec.cameras.len(), "scene declared without a model: frames are published unassociated")
+        }
+    }
+}
+
 impl Server {
     /// Loads every model of `config` (blocking: ONNX Runtime sessions) and starts its scenes
     /// and its declared ones. A model of a declared scene whose file does not exist yet is
@@ -155,14 +167,7 @@ impl Server {
         let mut started = Vec::new();
         for (k, (spec, rate)) in specs.into_iter().zip(rates).enumerate() {
             let model = models.remove(&spec.name);
-            match &model {
-                Some((info, _)) => {
-                    tracing::info!(scene = %spec.name, cameras = spec.cameras.len(), version = %info.version, "scene loaded")
-                }
-                None => {
-                    tracing::info!(scene = %spec.name, cameras = spec.cameras.len(), "scene declared without a model: frames are published unassociated")
-                }
-            }
+            log_scene(&spec, model.as_ref().map(|(info, _)| info));
             let options = scene::SceneOptions {
                 sync_timeout: config.sync_timeout,
                 max_pending_frames: config.max_pending_frames,

@@ -86,13 +86,22 @@ impl CameraTracks {
                 b.predicted()
             })
             .collect();
-        let mut expected = old.clone();
-        expected.scaled_add(frames as f32, vel);
-        let spacing = spacing(emb);
-        let d = euclidean_distances(emb, expected.view()).mapv(|x| x / spacing);
-        let cost = Array2::from_shape_fn(d.dim(), |(i, j)| {
-            1.0 - iou(&view[i], &predicted[j]) + cfg.link_weight * d[(i, j)]
-        });
+        // One product for both: the boxes now against themselves (the spacing) and against
+        // where the old ones are expected.
+        let mut both = ndarray::concatenate![ndarray::Axis(0), emb, old.view()];
+        both.slice_mut(ndarray::s![emb.nrows().., ..])
+            .scaled_add(frames as f32, vel);
+        let all = euclidean_distances(emb, both.view());
+        let n = emb.nrows();
+        let scale = 1.0 / spacing(all.slice(ndarray::s![.., ..n]));
+        let mut d = all.slice(ndarray::s![.., n..]).to_owned();
+        d.mapv_inplace(|x| x * scale);
+        let mut cost = d.clone();
+        for (mut row, b) in cost.rows_mut().into_iter().zip(view) {
+            for (c, p) in row.iter_mut().zip(&predicted) {
+                *c = 1.0 - iou(b, p) + cfg.link_weight * *c;
+            }
+        }
         for (i, j) in lsa::assign(cost.view()) {
             if d[(i, j)] <= cfg.link_gate && unforced(&cost, i, j, cfg.link_margin) {
                 links[i] = Some(j);
@@ -125,13 +134,16 @@ impl CameraTracks {
         self.emb = emb.map(|e| {
             let mut vel = Array2::zeros(e.dim());
             if let Some((old, old_vel)) = &self.emb {
+                let per = 1.0 / frames as f32;
                 for (i, l) in links.iter().enumerate() {
                     let Some(j) = *l else { continue };
-                    for k in 0..e.ncols() {
-                        let moved = (e[(i, k)] - old[(j, k)]) / frames as f32;
-                        let v = old_vel[(j, k)];
-                        vel[(i, k)] = v + weight * (moved - v);
-                    }
+                    ndarray::Zip::from(vel.row_mut(i))
+                        .and(e.row(i))
+                        .and(old.row(j))
+                        .and(old_vel.row(j))
+                        .for_each(|v, &now, &then, &was| {
+                            *v = was + weight * ((now - then) * per - was);
+                        });
                 }
             }
             (e.to_owned(), vel)
@@ -163,10 +175,10 @@ impl CameraTracks {
     }
 }
 
-/// The median over the boxes of the distance to their nearest other box (the typical spacing
-/// of people in the view; 1 with fewer than two boxes, never below 1e-6).
-fn spacing(e: ArrayView2<f32>) -> f32 {
-    let d = euclidean_distances(e, e);
+/// The median over the boxes of the distance to their nearest other box, from their distances
+/// `d` to each other (the typical spacing of people in the view; 1 with fewer than two boxes,
+/// never below 1e-6).
+fn spacing(d: ArrayView2<f32>) -> f32 {
     let mut nearest: Vec<f32> = d
         .rows()
         .into_iter()

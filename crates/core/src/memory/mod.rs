@@ -101,7 +101,7 @@ pub struct Memory {
     cameras: Vec<CameraTracks>,
     /// Remembered raw distance of pair `a < b` (index `a * cameras + b`), rows the boxes of
     /// `a`'s last frame, columns `b`'s; NaN where nothing is remembered.
-    pairs: Vec<Option<Array2<[f32; 2]>>>,
+    pairs: Vec<Option<PairMemory>>,
     /// Which pairs this frame has written.
     written: Vec<bool>,
     last_frame: Option<u64>,
@@ -151,7 +151,7 @@ impl Memory {
 
     /// Remembered pair distances held now (the memory's size).
     pub fn remembered(&self) -> usize {
-        self.pairs.iter().flatten().map(Array2::len).sum()
+        self.pairs.iter().flatten().map(|p| p.mean.len()).sum()
     }
 
     /// For each camera, each box of the last frame: the index of the box of the camera's
@@ -225,43 +225,58 @@ impl Memory {
         }
         let k = a * n + b;
         let (la, lb) = (self.cameras[a].links(), self.cameras[b].links());
-        if d.dim() != (la.len(), lb.len()) {
+        let (rows, cols) = d.dim();
+        if (rows, cols) != (la.len(), lb.len()) {
             self.pairs[k] = None;
             return;
         }
-        let mut kept = d.mapv(|v| [v, 1.0]);
+        if !d.is_standard_layout() {
+            *d = d.as_standard_layout().into_owned();
+        }
+        let values = d.as_slice_mut().expect("standard layout");
+        let mut weight = vec![1.0f32; values.len()];
         if let Some(old) = &self.pairs[k] {
-            let scale = finite_max(d);
-            for ((i, j), v) in d.indexed_iter_mut() {
-                let (Some(pi), Some(pj)) = (la[i], lb[j]) else {
+            // Present evidence that holds: `P(same | d) ≥ hold`, i.e. `d` within its reach
+            // (`S = 1 − d / max ≥ hold` without a calibration).
+            let reach = match &id.calibration {
+                Some(cal) => cal.reach(self.cfg.hold),
+                None => (1.0 - self.cfg.hold) * finite_max(values),
+            };
+            let carry = self.cfg.carry;
+            let old_cols: Vec<usize> = lb
+                .iter()
+                .map(|l| l.filter(|&j| j < old.cols).unwrap_or(usize::MAX))
+                .collect();
+            let rows_of = values
+                .chunks_exact_mut(cols)
+                .zip(weight.chunks_exact_mut(cols));
+            for ((row, w_row), l) in rows_of.zip(la) {
+                let Some(base) = l.filter(|&p| p < old.rows()).map(|p| p * old.cols) else {
                     continue;
                 };
-                let Some(&[m, w]) = old.get((pi, pj)) else {
-                    continue;
-                };
-                if !(m.is_finite() && v.is_finite()) || self.holds(*v, scale, id) {
-                    continue;
+                let (om, ow) = (
+                    &old.mean[base..base + old.cols],
+                    &old.weight[base..base + old.cols],
+                );
+                for ((v, wv), &pj) in row.iter_mut().zip(w_row.iter_mut()).zip(&old_cols) {
+                    let (Some(&m), Some(&w)) = (om.get(pj), ow.get(pj)) else {
+                        continue;
+                    };
+                    if !(m.is_finite() && v.is_finite()) || *v <= reach {
+                        continue;
+                    }
+                    // The exponentially weighted mean of the pair's distances, its weights
+                    // normalised: λ·m + (1 − λ)·d once the history is long, their plain mean
+                    // at first (a short history is not trusted more than it deserves).
+                    let past = carry * w;
+                    *v = (past * m + *v) / (past + 1.0);
+                    *wv = past + 1.0;
                 }
-                // The exponentially weighted mean of the pair's distances, its weights
-                // normalised: λ·m + (1 − λ)·d once the history is long, their plain mean at
-                // first (a short history is not trusted more than it deserves).
-                let past = self.cfg.carry * w;
-                *v = (past * m + *v) / (past + 1.0);
-                kept[(i, j)] = [*v, past + 1.0];
             }
         }
-        self.pairs[k] = Some(kept);
+        let mean = values.to_vec();
+        self.pairs[k] = Some(PairMemory { cols, mean, weight });
         self.written[k] = true;
-    }
-
-    /// Whether the present distance `d` alone says "the same person" beyond doubt: its
-    /// calibrated `P(same | d)`, or `S = 1 − d / scale` without a calibration, reaches `hold`.
-    fn holds(&self, d: f32, scale: f32, id: &IdentityConfig) -> bool {
-        let p = match &id.calibration {
-            Some(cal) => cal.probability(d),
-            None => 1.0 - d / scale,
-        };
-        p >= self.cfg.hold
     }
 
     /// Ends the frame: the pairs it did not write follow their cameras' links (or go).
@@ -276,29 +291,55 @@ impl Memory {
                 let Some(old) = self.pairs[k].take() else {
                     continue;
                 };
-                let (ra, rb) = (
-                    self.cameras[a].rows_from(old.nrows()),
-                    self.cameras[b].rows_from(old.ncols()),
-                );
-                let (Some(ra), Some(rb)) = (ra, rb) else {
-                    continue;
-                };
-                if ra.is_empty() || rb.is_empty() {
-                    continue;
+                let ra = self.cameras[a].rows_from(old.rows());
+                let rb = self.cameras[b].rows_from(old.cols);
+                if let (Some(ra), Some(rb)) = (ra, rb)
+                    && !ra.is_empty()
+                    && !rb.is_empty()
+                {
+                    self.pairs[k] = Some(old.moved(&ra, &rb));
                 }
-                let moved =
-                    Array2::from_shape_fn((ra.len(), rb.len()), |(i, j)| match (ra[i], rb[j]) {
-                        (Some(x), Some(y)) => old[(x, y)],
-                        _ => [f32::NAN, 0.0],
-                    });
-                self.pairs[k] = Some(moved);
             }
         }
     }
 }
 
+/// What one camera pair remembers: for each pair of boxes of the two cameras' last looks (row
+/// major, `cols` per row), the weighted mean of its distances and the weight behind it (NaN
+/// and 0 where nothing is remembered).
+#[derive(Debug, Clone)]
+struct PairMemory {
+    cols: usize,
+    mean: Vec<f32>,
+    weight: Vec<f32>,
+}
+
+impl PairMemory {
+    fn rows(&self) -> usize {
+        self.mean.len().checked_div(self.cols).unwrap_or(0)
+    }
+
+    /// The memory re-indexed: row `i` is old row `rows[i]`, column `j` old column `cols[j]`.
+    fn moved(&self, rows: &[Option<usize>], cols: &[Option<usize>]) -> PairMemory {
+        let mut mean = Vec::with_capacity(rows.len() * cols.len());
+        let mut weight = Vec::with_capacity(rows.len() * cols.len());
+        for r in rows {
+            for c in cols {
+                let at = r.zip(*c).map(|(r, c)| r * self.cols + c);
+                mean.push(at.map_or(f32::NAN, |k| self.mean[k]));
+                weight.push(at.map_or(0.0, |k| self.weight[k]));
+            }
+        }
+        PairMemory {
+            cols: cols.len(),
+            mean,
+            weight,
+        }
+    }
+}
+
 /// Largest finite entry (1 when none).
-fn finite_max(d: &Array2<f32>) -> f32 {
+fn finite_max(d: &[f32]) -> f32 {
     let m = d
         .iter()
         .copied()

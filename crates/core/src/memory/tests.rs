@@ -30,9 +30,16 @@ struct Seen {
     y: f32,
 }
 
+/// What each camera sees: the people, each with an embedding offset; `None` for a camera that
+/// did not report.
+type Views = [View];
+
+/// One camera's view: the people it sees with their embedding offsets, if it reported.
+type View = Option<Vec<(Seen, [f32; 2])>>;
+
 /// One frame: `views[c]` the people camera `c` sees, each with an optional embedding offset
 /// (a transient encoder mistake); `None` for a camera that did not report.
-fn frame(id: u64, views: &[Option<Vec<(Seen, [f32; 2])>>]) -> (Frame, FrameEmbeddings) {
+fn frame(id: u64, views: &Views) -> (Frame, FrameEmbeddings) {
     let mut frame = Frame::new(id, views.len());
     let mut embs = Vec::new();
     for (c, v) in views.iter().enumerate() {
@@ -61,7 +68,7 @@ fn groups(ids: &[Identity]) -> Vec<Vec<(usize, usize)>> {
     g
 }
 
-fn two_people(t: f32, offset: [f32; 2]) -> Vec<Option<Vec<(Seen, [f32; 2])>>> {
+fn two_people(t: f32, offset: [f32; 2]) -> Vec<View> {
     let a = Seen {
         x: 1.0 + 0.05 * t,
         y: 0.0,
