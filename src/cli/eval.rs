@@ -284,6 +284,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     if data.is_empty() {
         bail!("--model and --data are required (or --from-dump)");
     }
+    let memory = MemoryConfig::with_carry(args.memory)?;
     let workers = worker_count(args.workers);
     let (mut encoders, recording) = load_and_read(model, data, workers)?;
     let meta = encoders[0].metadata().clone();
@@ -323,7 +324,6 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     );
     let mut encoders: Vec<&mut dyn Encoder> =
         encoders.iter_mut().map(|e| e as &mut dyn Encoder).collect();
-    let memory = MemoryConfig::with_carry(args.memory)?;
     let runs =
         evaluate_settings_with(&mut encoders, &recording, &base, &settings, memory.as_ref())?;
     let rows: Vec<TableRow> = runs
@@ -335,6 +335,12 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         .collect();
     print!("{}", format_table(&rows));
     if let Some(r) = runs.iter().find(|r| r.mode == Mode::Identities) {
+        if let Some(m) = &memory {
+            println!(
+                "identities remember the past frames in frame order, as served (--memory {}; 0: each frame alone)",
+                m.carry
+            );
+        }
         print!("{}", r.identities.format());
         if args.tracking {
             let tracker = TrackerConfig {
@@ -478,6 +484,7 @@ enum Done {
 /// session each) that embed, associate and format their frames' lines; this thread writes the
 /// lines in frame order.
 pub fn run_associate(args: AssociateArgs) -> anyhow::Result<()> {
+    let mut memory = MemoryConfig::with_carry(args.memory)?.map(Memory::new);
     let workers = worker_count(args.workers);
     let t0 = Instant::now();
     let (mut encoders, recording) = load_and_read(&args.model, &args.data, workers)?;
@@ -495,7 +502,6 @@ pub fn run_associate(args: AssociateArgs) -> anyhow::Result<()> {
     let mut tracker = args
         .tracking
         .then(|| Tracker::new(TrackerConfig::default()));
-    let mut memory = MemoryConfig::with_carry(args.memory)?.map(Memory::new);
     let frames = &recording.frames;
     let (tracking, remember) = (tracker.is_some(), memory.is_some());
     map_ordered(

@@ -66,3 +66,55 @@ async fn binary_serves_and_flushes_on_sigterm() {
     .unwrap();
     assert!(status.success(), "{status:?}");
 }
+
+/// `--memory` (and `CROSSVIEW_MEMORY`) outside `[0, 1)` stops `serve` and `eval` with a message
+/// naming it, before anything is served or read.
+#[test]
+fn a_memory_share_outside_its_range_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = crossview_testing::export_model(dir.path(), "lab");
+    let model = model.to_str().unwrap();
+    for (args, env) in [
+        (
+            vec![
+                "serve",
+                "--model",
+                model,
+                "--listen",
+                "127.0.0.1:0",
+                "--memory",
+                "1",
+            ],
+            None,
+        ),
+        (
+            vec!["serve", "--model", model, "--listen", "127.0.0.1:0"],
+            Some("NaN"),
+        ),
+        (
+            vec![
+                "serve",
+                "--model",
+                model,
+                "--listen",
+                "127.0.0.1:0",
+                "--memory=-0.5",
+            ],
+            None,
+        ),
+        (
+            vec!["eval", "--model", model, "--data", model, "--memory", "2"],
+            None,
+        ),
+    ] {
+        let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_crossview"));
+        cmd.args(&args).env_remove("CROSSVIEW_MEMORY");
+        if let Some(v) = env {
+            cmd.env("CROSSVIEW_MEMORY", v);
+        }
+        let out = cmd.output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?} {env:?} started");
+        assert!(err.contains("memory"), "{args:?} {env:?}: {err}");
+    }
+}

@@ -264,6 +264,20 @@ mod tests {
     }
 
     #[test]
+    fn reach_is_where_the_probability_falls_below() {
+        let (s, f) = samples(3);
+        let cal = Calibration::fit(&s, &f).unwrap();
+        for p in [0.0f32, 0.05, 0.3, 0.5, 0.9, 0.99, 1.0, 1.5] {
+            let r = cal.reach(p);
+            for k in 0..400 {
+                let d = k as f32 * 0.01;
+                assert_eq!(cal.probability(d) >= p, d <= r, "p {p} d {d} reach {r}");
+            }
+        }
+        assert_eq!(cal.reach(f32::NAN), f32::NEG_INFINITY);
+    }
+
+    #[test]
     fn serde_round_trip_and_validation() {
         let (sync, shift) = samples(2);
         let cal = Calibration::fit(&sync, &shift).unwrap();
