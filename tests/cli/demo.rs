@@ -9,8 +9,9 @@ use std::time::Duration;
 
 use crossview::demo::{DemoConfig, start_local_server, stream_scene};
 use crossview_core::association::{AssociationConfig, Mode};
+use crossview_core::memory::MemoryConfig;
 use crossview_data::sim::{DetectorNoise, SimConfig, simulate};
-use crossview_eval::driver::evaluate;
+use crossview_eval::driver::evaluate_settings_with;
 use crossview_model::export::write_onnx;
 use crossview_model::{EncoderConfig, EncoderWeights, ModelMetadata, OnnxEncoder};
 use crossview_serve::{ModelSpec, ServeConfig};
@@ -142,7 +143,7 @@ async fn running_accuracy_over_the_network_equals_eval_global_mode() {
     );
 
     // The same frames through the evaluation driver, scoring the identities with the
-    // model's own settings (what the server uses).
+    // model's own settings and the server's default memory (what the server uses).
     let recording = simulate(&sim).unwrap();
     let mut encoder = OnnxEncoder::load(&model).unwrap();
     let cfg = AssociationConfig {
@@ -150,7 +151,17 @@ async fn running_accuracy_over_the_network_equals_eval_global_mode() {
         ..encoder.metadata().association_config()
     };
     assert_eq!(cfg.threshold, THRESHOLD);
-    let (expected, _) = evaluate(&mut encoder, &recording, &cfg).unwrap();
+    let setting = [(Mode::Identities, cfg.identity.link_threshold)];
+    let memory = MemoryConfig::default();
+    let runs = evaluate_settings_with(
+        &mut [&mut encoder],
+        &recording,
+        &cfg,
+        &setting,
+        Some(&memory),
+    )
+    .unwrap();
+    let expected = runs[0].metrics;
     let got = summary.metrics;
     assert_eq!(
         (

@@ -190,6 +190,10 @@ fn pairwise_and_identity_rows_and_associate_cover_every_box() {
         &s(&data),
         "--sweep",
         "0.2",
+        // Each frame alone: the identity rows read the same score matrices as the pairwise
+        // ones (with memory they read the remembered distances' scores).
+        "--memory",
+        "0",
     ]);
     for label in [
         "pairwise S>=0.40",
