@@ -74,34 +74,15 @@ fn a_memory_share_outside_its_range_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let model = crossview_testing::export_model(dir.path(), "lab");
     let model = model.to_str().unwrap();
+    let serve = |extra: &[&'static str]| {
+        let mut a = vec!["serve", "--model", model, "--listen", "127.0.0.1:0"];
+        a.extend_from_slice(extra);
+        a
+    };
     for (args, env) in [
-        (
-            vec![
-                "serve",
-                "--model",
-                model,
-                "--listen",
-                "127.0.0.1:0",
-                "--memory",
-                "1",
-            ],
-            None,
-        ),
-        (
-            vec!["serve", "--model", model, "--listen", "127.0.0.1:0"],
-            Some("NaN"),
-        ),
-        (
-            vec![
-                "serve",
-                "--model",
-                model,
-                "--listen",
-                "127.0.0.1:0",
-                "--memory=-0.5",
-            ],
-            None,
-        ),
+        (serve(&["--memory", "1"]), None),
+        (serve(&[]), Some("NaN")),
+        (serve(&["--memory=-0.5"]), None),
         (
             vec!["eval", "--model", model, "--data", model, "--memory", "2"],
             None,

@@ -235,7 +235,11 @@ impl Memory {
         }
         let values = d.as_slice_mut().expect("standard layout");
         let mut weight = vec![1.0f32; values.len()];
-        if let Some(old) = &self.pairs[k] {
+        // A share outside [0, 1) (a hand-built configuration) remembers nothing.
+        let old = self.pairs[k]
+            .as_ref()
+            .filter(|_| (0.0..1.0).contains(&self.cfg.carry));
+        if let Some(old) = old {
             // Present evidence that holds: `P(same | d) ≥ hold`, i.e. `d` within its reach
             // (`S = 1 − d / max ≥ hold` without a calibration).
             let reach = match &id.calibration {

@@ -313,6 +313,10 @@ impl Worker {
                     error = %e.report(),
                     "association failed"
                 );
+                // A panic may have left the memory half-written: start it over.
+                if let Some(m) = &mut self.memory {
+                    m.clear();
+                }
                 Err(e.into())
             }
         }
