@@ -32,7 +32,7 @@ fn parse_setting(s: &str) -> anyhow::Result<Option<MemoryConfig>> {
     }
     let v: Vec<f32> = s.split(':').map(str::parse).collect::<Result<_, _>>()?;
     match v[..] {
-        [c] if c == 0.0 => Ok(None),
+        [0.0] => Ok(None),
         [carry, hold, link_weight, link_gate, link_margin] => Ok(Some(MemoryConfig {
             carry,
             hold,
