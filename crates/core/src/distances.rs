@@ -225,7 +225,11 @@ fn gram_block(
 /// that one bad entry cannot turn the whole matrix into NaN.
 fn finite_max(m: &Array2<f32>) -> f32 {
     let m = m.as_standard_layout();
-    let flat = m.as_slice().expect("standard layout is contiguous");
+    finite_max_of(m.as_slice().expect("standard layout is contiguous"))
+}
+
+/// [`finite_max`] of values already flat (the memory reads the divisor of a pair's `S`).
+pub(crate) fn finite_max_of(flat: &[f32]) -> f32 {
     finite_range(flat).map_or(0.0, |(_, hi)| hi.max(0.0))
 }
 

@@ -163,19 +163,19 @@ pub fn evaluate_settings_with(
                 .map(|m| Memory::new(m.clone()))
         })
         .collect();
-    let remember = memories.iter().any(Option::is_some);
-    // Per frame: its ids and embeddings, and (without memory) every setting's scores.
+    let remembers: Vec<bool> = memories.iter().map(Option::is_some).collect();
+    // Per frame: its ids and embeddings, and the scores of the settings without memory (those
+    // with memory need frame order: the sink scores them).
     let frame_work = |encoder: &mut &mut dyn Encoder, _: usize, frame: &Frame| {
         let ids = frame_ids(scene, frame)?;
         let embeddings = embed_frame(*encoder, scene, frame)?;
-        let scored: Vec<_> = if remember {
-            Vec::new()
-        } else {
-            configs
-                .iter()
-                .map(|cfg| score(scene, frame, &ids, embeddings.clone(), cfg, None))
-                .collect()
-        };
+        let scored: Vec<_> = configs
+            .iter()
+            .zip(&remembers)
+            .map(|(cfg, &later)| {
+                (!later).then(|| score(scene, frame, &ids, embeddings.clone(), cfg, None))
+            })
+            .collect();
         Ok((ids, embeddings, scored))
     };
     map_ordered(
@@ -183,16 +183,18 @@ pub fn evaluate_settings_with(
         encoders,
         DEFAULT_WINDOW,
         frame_work,
-        |i, (ids, embeddings, mut scored)| {
-            if remember {
-                let frame = &recording.frames[i];
-                scored = configs
-                    .iter()
-                    .zip(memories.iter_mut())
-                    .map(|(cfg, m)| score(scene, frame, &ids, embeddings.clone(), cfg, m.as_mut()))
-                    .collect();
-            }
-            for (k, (frame_records, frame_stats)) in scored.into_iter().enumerate() {
+        |i, (ids, embeddings, scored)| {
+            let frame = &recording.frames[i];
+            let scored = scored
+                .into_iter()
+                .zip(&configs)
+                .zip(memories.iter_mut())
+                .map(|((done, cfg), m)| {
+                    done.unwrap_or_else(|| {
+                        score(scene, frame, &ids, embeddings.clone(), cfg, m.as_mut())
+                    })
+                });
+            for (k, (frame_records, frame_stats)) in scored.enumerate() {
                 records[k].extend(frame_records);
                 stats[k].merge(&frame_stats);
             }

@@ -28,6 +28,7 @@
 //! [`Memory::forget_camera`].
 use ndarray::Array2;
 
+use crate::distances::{NORM_EPS, finite_max_of};
 use crate::identity::IdentityConfig;
 
 pub(crate) mod links;
@@ -99,8 +100,8 @@ impl MemoryConfig {
 pub struct Memory {
     cfg: MemoryConfig,
     cameras: Vec<CameraTracks>,
-    /// Remembered raw distance of pair `a < b` (index `a * cameras + b`), rows the boxes of
-    /// `a`'s last frame, columns `b`'s; NaN where nothing is remembered.
+    /// What pair `a < b` remembers (index `a * cameras + b`): rows the boxes of `a`'s last
+    /// look, columns `b`'s.
     pairs: Vec<Option<PairMemory>>,
     /// Which pairs this frame has written.
     written: Vec<bool>,
@@ -120,11 +121,6 @@ impl Memory {
             last_frame: None,
             step: None,
         }
-    }
-
-    /// The configuration.
-    pub fn config(&self) -> &MemoryConfig {
-        &self.cfg
     }
 
     /// Forgets everything (a model swap, a clock-offset change).
@@ -241,10 +237,10 @@ impl Memory {
             .filter(|_| (0.0..1.0).contains(&self.cfg.carry));
         if let Some(old) = old {
             // Present evidence that holds: `P(same | d) ≥ hold`, i.e. `d` within its reach
-            // (`S = 1 − d / max ≥ hold` without a calibration).
+            // (`S ≥ hold` without a calibration, `S` normalised as §3 normalises it).
             let reach = match &id.calibration {
                 Some(cal) => cal.reach(self.cfg.hold),
-                None => (1.0 - self.cfg.hold) * finite_max(values),
+                None => (1.0 - self.cfg.hold) * (finite_max_of(values) + NORM_EPS),
             };
             let carry = self.cfg.carry;
             let old_cols: Vec<usize> = lb
@@ -340,16 +336,6 @@ impl PairMemory {
             weight,
         }
     }
-}
-
-/// Largest finite entry (1 when none).
-fn finite_max(d: &[f32]) -> f32 {
-    let m = d
-        .iter()
-        .copied()
-        .filter(|v| v.is_finite())
-        .fold(0f32, f32::max);
-    if m > 0.0 { m } else { 1.0 }
 }
 
 #[cfg(test)]
