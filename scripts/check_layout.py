@@ -29,7 +29,7 @@ SIZED = ["serve", "core", "train"]
 CROSS = {"error", "auth", "body", "conn", "tls", "metrics", "locks", "echo"}
 # `config` assembles every settings type (the domain's, and the Kafka transport's).
 SETTINGS = {"config"}
-DOMAIN = {"sync", "cost", "scene", "registry", "reload", "record", "subscribers", "service"}
+DOMAIN = {"sync", "cost", "scene", "registry", "reload", "record", "heal", "subscribers", "service"}
 TOP = {"router", ""}  # the crate root binds everything
 ALLOWED_UP = {(("config",), ("transport", "kafka", "config"))}
 

@@ -5,8 +5,10 @@ use clap::{Parser, Subcommand};
 pub mod demo;
 pub mod eval;
 pub mod fit_check;
+pub mod gate;
 pub mod import;
 pub mod model;
+pub mod retrain;
 pub mod serve;
 pub mod simulate;
 pub mod sync_check;
@@ -25,6 +27,12 @@ pub struct Cli {
         default_value = "text"
     )]
     pub log_format: LogFormat,
+
+    /// Run at this CPU niceness (0 = normal … 19 = lowest priority): a training or a check
+    /// beside a server that must not be slowed (`serve --auto-retrain` runs its retrains
+    /// with 19).
+    #[arg(long, global = true, env = "CROSSVIEW_NICE", value_parser = clap::value_parser!(i32).range(0..=19))]
+    pub nice: Option<i32>,
 
     #[command(subcommand)]
     pub command: Command,
@@ -86,6 +94,9 @@ pub enum Command {
 pub fn run() -> anyhow::Result<()> {
     let cli = Cli::parse();
     init_logging(cli.log_format);
+    if let Some(n) = cli.nice {
+        lower_priority(n);
+    }
     if !matches!(
         cli.command,
         Command::Serve(_) | Command::Demo(_) | Command::Train(_)
@@ -109,6 +120,23 @@ pub fn run() -> anyhow::Result<()> {
             Ok(())
         }
     }
+}
+
+/// Lowers this process's CPU priority to niceness `n` before it starts any thread (threads
+/// inherit it). Best effort: a refusal is logged and the command runs on.
+fn lower_priority(n: i32) {
+    #[cfg(unix)]
+    {
+        // SAFETY: setpriority only changes the scheduling priority of the calling process
+        // (its one thread so far); no memory is shared with the call.
+        #[allow(unsafe_code)]
+        let rc = unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, n) };
+        if rc != 0 {
+            tracing::warn!(nice = n, error = %std::io::Error::last_os_error(), "cannot lower the CPU priority");
+        }
+    }
+    #[cfg(not(unix))]
+    tracing::warn!(nice = n, "--nice is not supported on this platform");
 }
 
 /// A command whose output is piped into a reader that stops early (`crossview eval … | head`)

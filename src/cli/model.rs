@@ -35,6 +35,10 @@ pub enum ModelCommand {
     /// theirs concatenated (each scaled by 1/√M), so its distances are the RMS of theirs.
     /// Calibrated on `--data` when given (else it carries no calibration).
     Combine(CombineArgs),
+    /// Whether a candidate model should replace the serving one, judged without labels on a
+    /// recording neither was chosen on (what `serve --auto-retrain` checks before a swap);
+    /// exit status 3 when refused.
+    Gate(super::gate::GateArgs),
 }
 
 /// Options of `crossview model combine`.
@@ -131,6 +135,7 @@ pub fn run(args: ModelArgs) -> anyhow::Result<()> {
         ModelCommand::Info(a) => info(a),
         ModelCommand::Calibrate(a) => calibrate(a),
         ModelCommand::Combine(a) => combine(a),
+        ModelCommand::Gate(a) => super::gate::run(a),
     }
 }
 

@@ -209,6 +209,9 @@ pub struct ServeArgs {
     /// is not recorded and counted (`crossview_record_dropped_total`).
     #[arg(long, env = "CROSSVIEW_RECORD_QUEUE_BYTES", default_value_t = RecordConfig::new("").queue_bytes)]
     pub record_queue_bytes: usize,
+    /// Healing (`--auto-retrain`).
+    #[command(flatten)]
+    pub retrain: super::retrain::RetrainArgs,
     /// Kafka mode (docs/kafka.md); boxed, as these flags are many.
     #[command(flatten)]
     pub kafka: Box<KafkaArgs>,
@@ -467,6 +470,7 @@ impl ServeArgs {
                 max_bytes: self.record_max_bytes,
                 queue_bytes: self.record_queue_bytes,
             }),
+            heal: self.retrain.to_config(self.record.as_deref())?,
             kafka: self.kafka.to_config()?,
             inference_threads: self.inference_threads,
             time_tolerance: self.time_tolerance,

@@ -12,6 +12,7 @@ mod connections;
 mod curl;
 mod frame_cost;
 mod frame_ids;
+mod heal;
 mod fuzz;
 mod grpc_push_stream;
 mod late_duplicate;

@@ -207,6 +207,20 @@ pub fn scene_to_pb(s: types::SceneDescription) -> pb::Scene {
         sync_timeout_ms: s.sync_timeout_ms,
         clock: s.clock.map(clock_to_pb),
         fit: s.fit.map(fit_to_pb),
+        retrain: s.retrain.map(retrain_to_pb),
+    }
+}
+
+/// Healing status → protobuf.
+pub fn retrain_to_pb(r: types::RetrainStatus) -> pb::RetrainStatus {
+    pb::RetrainStatus {
+        state: r.state,
+        cameras: r.cameras,
+        attempts: r.attempts,
+        swapped: r.swapped,
+        last_outcome: r.last_outcome.unwrap_or_default(),
+        last_reason: r.last_reason.unwrap_or_default(),
+        last_model: r.last_model.unwrap_or_default(),
     }
 }
 

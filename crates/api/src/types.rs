@@ -180,6 +180,34 @@ pub struct SceneDescription {
     /// has not yet seen enough frames.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fit: Option<FitEstimate>,
+    /// What `serve --auto-retrain` is doing for the scene; absent when it is off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub retrain: Option<RetrainStatus>,
+}
+
+/// Healing (`serve --auto-retrain`, `docs/serve.md`): when a camera has not fitted for a while,
+/// a model retrained on what was recorded since, gated without labels and swapped in live.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct RetrainStatus {
+    /// `idle`, `waiting` (a camera does not fit: recording its new view), `training` or
+    /// `gating`.
+    pub state: String,
+    /// The cameras that do not fit (the reason for the coming or running retrain).
+    pub cameras: Vec<String>,
+    /// Retrains started since the server started.
+    pub attempts: u64,
+    /// Of them, those that swapped a model in.
+    pub swapped: u64,
+    /// The last finished retrain: `swapped`, `refused`, `failed`, `timed_out` or
+    /// `superseded`; absent before the first.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub last_outcome: Option<String>,
+    /// Why, in words (the gate's verdict, the error).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub last_reason: Option<String>,
+    /// The model file the last swap put in service.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub last_model: Option<String>,
 }
 
 /// Whether each camera still fits the serving model, from the detections alone: how sharply

@@ -381,6 +381,8 @@ pub struct ServeConfig {
     pub memory: Option<MemoryConfig>,
     /// Record every accepted batch ([`super::record`]) when set.
     pub record: Option<super::record::RecordConfig>,
+    /// Heal scenes whose camera stopped fitting ([`crate::heal`], needs `record`) when set.
+    pub heal: Option<super::heal::HealConfig>,
     /// Kafka mode ([`crate::transport::kafka`]) beside gRPC and HTTP, when set.
     pub kafka: Option<crate::transport::kafka::config::KafkaConfig>,
     /// Threads of the inference pool every scene's work runs on (0: one per core).
@@ -410,6 +412,7 @@ impl std::fmt::Debug for ServeConfig {
             .field("tracker", &self.tracker)
             .field("memory", &self.memory)
             .field("record", &self.record)
+            .field("heal", &self.heal)
             .field("kafka", &self.kafka)
             .field("inference_threads", &self.inference_threads)
             .field("time_tolerance", &self.time_tolerance)
@@ -434,6 +437,7 @@ impl Default for ServeConfig {
             tracker: Some(TrackerConfig::default()),
             memory: Some(MemoryConfig::default()),
             record: None,
+            heal: None,
             kafka: None,
             inference_threads: 0,
             time_tolerance: None,

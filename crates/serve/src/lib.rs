@@ -3,7 +3,8 @@
 //! Layout (one job per module; imports run down these layers): the domain — [`sync`] the pure
 //! frame synchronizer, [`scene`] a live scene (validation, admission, the encoder worker
 //! thread, the clock watch, results broadcast), [`registry`] model loading, [`reload`] live
-//! model swaps, [`record`] the recording of accepted batches (`--record`), [`service`] the one
+//! model swaps, [`record`] the recording of accepted batches (`--record`), [`heal`] retraining
+//! and swapping in a model when a camera stopped fitting (`--auto-retrain`), [`service`] the one
 //! domain API; the [`transport`]s, one folder each — [`transport::grpc`] (with the `Push` and
 //! `Stream` calls' own request framing), [`transport::http`] (with the live viewer) and
 //! [`transport::kafka`] — each mapping the one server [`Error`] in its own way (wire types and
@@ -26,6 +27,7 @@ pub(crate) mod conn;
 pub mod cost;
 mod echo;
 pub mod error;
+pub mod heal;
 mod locks;
 pub mod metrics;
 pub mod record;
@@ -53,6 +55,7 @@ use tower::ServiceExt;
 
 pub use config::{ConnectionLimits, Limits, ModelSpec, ServeConfig, TlsConfig};
 pub use error::{Error, Result};
+pub use heal::HealConfig;
 pub use record::RecordConfig;
 pub use registry::SceneInfo;
 pub use scene::Scene;
@@ -149,6 +152,15 @@ impl Server {
                 });
             }
         }
+        if let Some(h) = &config.heal {
+            h.validate()?;
+            if config.record.is_none() {
+                return Err(Error::invalid(
+                    "--auto-retrain",
+                    "needs --record: a retrain learns from what the server recorded",
+                ));
+            }
+        }
         let recorder = match &config.record {
             Some(rc) => Some(record::Recorder::start(
                 rc.clone(),
@@ -238,6 +250,9 @@ impl Server {
                 None => reload::listen_sighup()?,
             };
             service::spawn_reload_on_sighup(self.service.clone(), hup);
+        }
+        if let Some(h) = &self.config.heal {
+            heal::spawn(self.service.clone(), h.clone());
         }
         let limits = self.config.connections;
         let connections = conn::Connections::new(limits, self.service.metrics().clone());

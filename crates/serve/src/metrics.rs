@@ -371,6 +371,23 @@ impl Metrics {
         }
     }
 
+    /// A retrain (`--auto-retrain`) ended: `crossview_retrains_total{scene,outcome}`.
+    pub(crate) fn retrain_done(&self, scene: &str, outcome: &str) {
+        self.inc(
+            "crossview_retrains_total",
+            &[("scene", scene), ("outcome", outcome)],
+        );
+    }
+
+    /// Whether a retrain of `scene` is running: `crossview_retrain_running{scene}` 1 or 0.
+    pub(crate) fn retrain_running(&self, scene: &str, running: bool) {
+        self.set(
+            "crossview_retrain_running",
+            &[("scene", scene)],
+            if running { 1.0 } else { 0.0 },
+        );
+    }
+
     /// `--auto-align` changed a camera's clock offset.
     pub(crate) fn clock_aligned(&self, scene: &str, camera: &str) {
         self.inc(

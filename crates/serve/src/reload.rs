@@ -4,12 +4,15 @@
 //! accepted batch is lost or associated twice, and every result names the version that
 //! produced it. A file that is missing, corrupt or made for other cameras is refused with a
 //! log line and `crossview_model_reloads_total{outcome="refused"}`; the old model keeps
-//! serving.
-use std::sync::Arc;
+//! serving. Healing ([`crate::heal`]) swaps a retrained file in the same way and makes it the
+//! scene's file from then on ([`Reloader::adopt`]).
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
 
 use crate::config::{Limits, ModelSpec};
 use crate::error::{Error, Result};
 use crate::metrics::Metrics;
+use crate::locks::lock;
 use crate::registry;
 use crate::scene::Scene;
 
@@ -18,7 +21,8 @@ pub use crossview_api::types::ReloadOutcome;
 /// The model files a server reloads, by scene.
 #[derive(Debug, Clone)]
 pub(crate) struct Reloader {
-    models: Vec<ModelSpec>,
+    /// Each scene's model file (a healed scene's is its retrained file).
+    models: Arc<Mutex<Vec<ModelSpec>>>,
     limits: Limits,
     /// One reload at a time: a second waits for the first.
     running: Arc<tokio::sync::Mutex<()>>,
@@ -27,7 +31,7 @@ pub(crate) struct Reloader {
 impl Reloader {
     pub(crate) fn new(models: Vec<ModelSpec>, limits: Limits) -> Self {
         Reloader {
-            models,
+            models: Arc::new(Mutex::new(models)),
             limits,
             running: Arc::default(),
         }
@@ -41,21 +45,62 @@ impl Reloader {
         metrics: &Metrics,
     ) -> Vec<ReloadOutcome> {
         let _one = self.running.lock().await;
-        let mut out = Vec::with_capacity(self.models.len());
-        for spec in &self.models {
+        let models = lock(&self.models).clone();
+        let mut out = Vec::with_capacity(models.len());
+        for spec in &models {
             let outcome = self.reload_one(scene_of(&spec.name), spec).await;
-            metrics.model_reload(&outcome.scene, &outcome.outcome);
-            match &outcome.error {
-                Some(e) => {
-                    tracing::warn!(scene = %outcome.scene, path = %spec.path.display(), error = %e, "model refused; the old one keeps serving")
-                }
-                None => {
-                    tracing::info!(scene = %outcome.scene, outcome = %outcome.outcome, version = outcome.version.as_deref().unwrap_or("none"), "model reload")
-                }
-            }
+            log_outcome(&outcome, spec, metrics);
             out.push(outcome);
         }
         out
+    }
+
+    /// The model file scene `scene` is served from, when it has one.
+    pub(crate) fn path_of(&self, scene: &str) -> Option<PathBuf> {
+        let models = lock(&self.models);
+        models.iter().find(|m| m.name == scene).map(|m| m.path.clone())
+    }
+
+    /// Swaps the model file `path` into `scene` as a reload does and, when it is swapped in,
+    /// makes it the scene's file (later reloads re-read it). Refused when the scene was not
+    /// served from `expected` any more (an operator's reload came first).
+    pub(crate) async fn adopt(
+        &self,
+        scene: Result<Arc<Scene>>,
+        path: &Path,
+        expected: &Path,
+        metrics: &Metrics,
+    ) -> ReloadOutcome {
+        let _one = self.running.lock().await;
+        let Some(mut spec) = lock(&self.models)
+            .iter()
+            .find(|m| scene.as_ref().is_ok_and(|s| s.name() == m.name))
+            .cloned()
+        else {
+            let e = Error::NoModel("the scene has no model file to replace".into());
+            let spec = ModelSpec {
+                name: scene.as_ref().map_or("?", |s| s.name()).to_string(),
+                path: path.to_path_buf(),
+            };
+            return refused(&spec, None, &e);
+        };
+        if spec.path != expected {
+            let e = Error::Unavailable(format!(
+                "the scene's model file changed to {} meanwhile",
+                spec.path.display()
+            ));
+            return refused(&spec, None, &e);
+        }
+        spec.path = path.to_path_buf();
+        let outcome = self.reload_one(scene, &spec).await;
+        log_outcome(&outcome, &spec, metrics);
+        if outcome.outcome == "swapped" {
+            let mut models = lock(&self.models);
+            if let Some(m) = models.iter_mut().find(|m| m.name == spec.name) {
+                m.path = spec.path;
+            }
+        }
+        outcome
     }
 
     async fn reload_one(&self, scene: Result<Arc<Scene>>, spec: &ModelSpec) -> ReloadOutcome {
@@ -111,6 +156,19 @@ enum Read {
     Unchanged,
     /// Different bytes, loaded (or refused).
     Loaded(Result<(crate::registry::SceneInfo, Box<dyn crossview_core::Encoder>)>),
+}
+
+/// Counts and logs one reload's outcome.
+fn log_outcome(outcome: &ReloadOutcome, spec: &ModelSpec, metrics: &Metrics) {
+    metrics.model_reload(&outcome.scene, &outcome.outcome);
+    match &outcome.error {
+        Some(e) => {
+            tracing::warn!(scene = %outcome.scene, path = %spec.path.display(), error = %e, "model refused; the old one keeps serving")
+        }
+        None => {
+            tracing::info!(scene = %outcome.scene, outcome = %outcome.outcome, version = outcome.version.as_deref().unwrap_or("none"), "model reload")
+        }
+    }
 }
 
 fn refused(spec: &ModelSpec, version: Option<String>, e: &Error) -> ReloadOutcome {

@@ -85,6 +85,32 @@ impl Service {
         }
     }
 
+    /// The model file `scene` is served from (and reloaded from), when it has one.
+    pub(crate) fn model_path(&self, scene: &str) -> Option<std::path::PathBuf> {
+        self.reloader.as_ref()?.path_of(scene)
+    }
+
+    /// Swaps the model file `path` into `scene` as a reload does and makes it the scene's
+    /// file from then on, unless the scene is no longer served from `expected` (healing,
+    /// [`crate::heal`]).
+    pub(crate) async fn adopt_model(
+        &self,
+        scene: &str,
+        path: &std::path::Path,
+        expected: &std::path::Path,
+    ) -> ReloadOutcome {
+        let found = self.scene(scene).cloned();
+        match &self.reloader {
+            Some(r) => r.adopt(found, path, expected, &self.metrics).await,
+            None => ReloadOutcome {
+                scene: scene.to_string(),
+                outcome: "refused".into(),
+                version: None,
+                error: Some("this server reloads no model files".into()),
+            },
+        }
+    }
+
     /// Disconnects result subscribers that stop reading for `stall` (see [`Self::subscribe`]).
     pub(crate) fn with_stall_timeout(mut self, stall: Duration) -> Self {
         self.stall_timeout = Some(stall);

@@ -131,6 +131,12 @@ enum Msg {
         detections: Vec<Detection>,
         cost: usize,
     },
+    /// Close the scene's current file (its next batch starts a new one) and answer with the
+    /// sequence number the next file of the whole directory will get.
+    Mark {
+        scene: usize,
+        reply: tokio::sync::oneshot::Sender<u64>,
+    },
     Stop,
 }
 
@@ -142,6 +148,8 @@ pub(crate) struct Recorder {
     closed: AtomicBool,
     metrics: Metrics,
     names: Vec<String>,
+    /// The recording directory (scenes' directories below it).
+    dir: PathBuf,
     writer: Mutex<Option<std::thread::JoinHandle<()>>>,
 }
 
@@ -187,6 +195,7 @@ impl Recorder {
             closed: AtomicBool::new(false),
             metrics,
             names: scenes.iter().map(|s| s.name.clone()).collect(),
+            dir: config.dir.clone(),
             writer: Mutex::new(Some(handle)),
         }))
     }
@@ -227,6 +236,41 @@ fn batch_cost(detections: &[Detection]) -> usize {
 }
 
 impl SceneRecorder {
+    /// The scene's recording directory.
+    pub(crate) fn dir(&self) -> PathBuf {
+        self.recorder.dir.join(&self.recorder.names[self.scene])
+    }
+
+    /// Closes the scene's current file, so that what is accepted from now on goes to files
+    /// of their own, and returns the first sequence number those files can have (`None` when
+    /// the recorder has stopped). Batches queued before the call stay before the mark.
+    pub(crate) async fn mark(&self) -> Option<u64> {
+        let (reply, rx) = tokio::sync::oneshot::channel();
+        let msg = Msg::Mark {
+            scene: self.scene,
+            reply,
+        };
+        self.recorder.tx.send(msg).ok()?;
+        rx.await.ok()
+    }
+
+    /// This scene's recording files whose sequence number is `from` or more, with their
+    /// sequence numbers, oldest first.
+    pub(crate) fn files_from(&self, from: u64) -> Vec<(u64, PathBuf)> {
+        let Ok(entries) = std::fs::read_dir(self.dir()) else {
+            return Vec::new();
+        };
+        let mut files: Vec<(u64, PathBuf)> = entries
+            .flatten()
+            .filter_map(|e| {
+                let seq = writer::file_seq(e.file_name().to_str()?)?;
+                (seq >= from).then(|| (seq, e.path()))
+            })
+            .collect();
+        files.sort_unstable();
+        files
+    }
+
     /// Queues one accepted batch of camera number `camera_index`, grouped by clock offset
     /// `offset`, for the writer; never blocks. Call it where the batch is accepted, under the
     /// scene's intake lock, so batches are written in acceptance order. A batch the queue has

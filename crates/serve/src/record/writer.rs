@@ -94,7 +94,7 @@ fn header_line(spec: &SceneSpec, fps: Option<f64>) -> Result<Vec<u8>> {
 }
 
 /// The sequence number of a recording file name `<seq>-<...>.jsonl`.
-fn file_seq(name: &str) -> Option<u64> {
+pub(super) fn file_seq(name: &str) -> Option<u64> {
     let stem = name.strip_suffix(".jsonl")?;
     let (seq, _) = stem.split_once('-')?;
     (seq.len() == 10 && seq.bytes().all(|b| b.is_ascii_digit()))
@@ -257,6 +257,10 @@ impl Writer {
                     }
                     self.write(scene, camera_index, frame_id, time, &detections);
                     queued.fetch_sub(cost, Ordering::AcqRel);
+                }
+                Msg::Mark { scene, reply } => {
+                    self.close_file(scene);
+                    let _ = reply.send(self.next_seq);
                 }
                 Msg::Stop => break,
             }

@@ -56,9 +56,10 @@ impl FitReporter {
     }
 
     /// Forgets the baselines (a new model) and lifts every fence: the new model is judged
-    /// afresh.
+    /// afresh (nothing is published until its first look).
     pub(super) fn reset(&mut self) {
         self.watch.reset();
+        *lock(&self.state) = None;
         if let Some(fence) = &self.fence {
             fence.iter().for_each(|f| f.store(false, Ordering::Release));
         }

@@ -31,7 +31,7 @@ use std::time::{Duration, Instant};
 
 use tokio::sync::{Notify, broadcast, oneshot};
 
-use crossview_api::types::{ClockEstimate, FitEstimate, SceneDescription};
+use crossview_api::types::{ClockEstimate, FitEstimate, RetrainStatus, SceneDescription};
 use crossview_core::capture::{CaptureTime, Ticks};
 use crossview_core::memory::MemoryConfig;
 use crossview_core::tracking::{Tracker, TrackerConfig};
@@ -132,6 +132,8 @@ pub struct Scene {
     clock: Arc<Mutex<Option<ClockEstimate>>>,
     /// The live watch's latest look at the cameras' fit ([`fit`]).
     fit: Arc<Mutex<Option<FitEstimate>>>,
+    /// What healing (`--auto-retrain`) is doing for the scene, as it last said.
+    retrain: Mutex<Option<RetrainStatus>>,
     /// Each camera's clock offset as applied now (declared, or changed by `--auto-align`).
     offsets: clock::Offsets,
     /// The scene's clock once it is fed capture times (results then carry their tick time).
@@ -241,6 +243,7 @@ impl Scene {
             recorder,
             clock,
             fit,
+            retrain: Mutex::new(None),
             offsets,
             timed,
             ticks,
@@ -268,7 +271,10 @@ impl Scene {
             .push(Job::Swap { model, applied })
             .map_err(|_| Error::Unavailable("server is shutting down".into()))?;
         done.await
-            .map_err(|_| Error::Unavailable("encoder worker stopped".into()))
+            .map_err(|_| Error::Unavailable("encoder worker stopped".into()))?;
+        // The new model is judged afresh: nothing is known of its fit until the next look.
+        *lock(&self.fit) = None;
+        Ok(())
     }
 
     /// The size and cost limits the scene enforces.
@@ -299,7 +305,18 @@ impl Scene {
             sync_timeout_ms: self.sync_timeout.as_millis() as u64,
             clock: self.clock_estimate(),
             fit: lock(&self.fit).clone(),
+            retrain: lock(&self.retrain).clone(),
         }
+    }
+
+    /// Publishes what healing is doing for the scene (in [`Self::describe`]).
+    pub(crate) fn set_retrain(&self, status: RetrainStatus) {
+        *lock(&self.retrain) = Some(status);
+    }
+
+    /// Where the scene's accepted batches are recorded, if anywhere.
+    pub(crate) fn recorder(&self) -> Option<&SceneRecorder> {
+        self.recorder.as_ref()
     }
 
     /// Accepts one camera batch into the synchronizer (see the module docs) and returns the
