@@ -59,7 +59,7 @@ pub struct GateArgs {
     pub reference: Vec<PathBuf>,
     /// How far below the serving model's key on `--reference` the candidate's key on `--data`
     /// may be (crowds differ from one stretch of time to another).
-    #[arg(long, default_value_t = 0.03)]
+    #[arg(long, default_value_t = 0.05)]
     pub tolerance: f64,
     /// Write the verdict as one JSON object instead of a table.
     #[arg(long)]
@@ -102,7 +102,10 @@ pub fn run(args: GateArgs) -> anyhow::Result<()> {
     for name in &args.camera {
         match recording.scene.cameras.iter().position(|c| &c.name == name) {
             Some(i) => watched.push(i),
-            None => bail!("--camera {name}: not a camera of scene '{}'", recording.scene.name),
+            None => bail!(
+                "--camera {name}: not a camera of scene '{}'",
+                recording.scene.name
+            ),
         }
     }
     if !(0.0..=1.0).contains(&args.tolerance) {
@@ -129,7 +132,12 @@ pub fn run(args: GateArgs) -> anyhow::Result<()> {
         accepted,
         reason,
         frames: recording.frames.len(),
-        cameras: recording.scene.cameras.iter().map(|c| c.name.clone()).collect(),
+        cameras: recording
+            .scene
+            .cameras
+            .iter()
+            .map(|c| c.name.clone())
+            .collect(),
         serving,
         candidate,
         reference,
@@ -180,7 +188,13 @@ fn pair_contrasts(
     let min_frames = FitConfig::default().min_frames;
     Ok(profiles
         .iter()
-        .map(|(a, b, p)| (*a, *b, contrast(p, i64::MIN, min_frames).map(|c| c.contrast)))
+        .map(|(a, b, p)| {
+            (
+                *a,
+                *b,
+                contrast(p, i64::MIN, min_frames).map(|c| c.contrast),
+            )
+        })
         .collect())
 }
 
@@ -229,7 +243,10 @@ fn decide(
         let (old, new) = (serving.cameras[c], candidate.cameras[c]);
         let Some(new) = new else {
             if watched.contains(&c) {
-                return (false, format!("camera {}: unmeasured under the candidate", cam.name));
+                return (
+                    false,
+                    format!("camera {}: unmeasured under the candidate", cam.name),
+                );
             }
             continue;
         };
@@ -299,7 +316,10 @@ fn as_it_was(
 
 fn table(v: &Verdict) -> String {
     let cell = |x: Option<f32>| x.map_or("-".to_string(), |x| format!("{x:.2}"));
-    let mut out = format!("{} frames\n{:<12} {:>9} {:>9}\n", v.frames, "", "serving", "candidate");
+    let mut out = format!(
+        "{} frames\n{:<12} {:>9} {:>9}\n",
+        v.frames, "", "serving", "candidate"
+    );
     out.push_str(&format!(
         "{:<12} {:>9.4} {:>9.4}\n",
         "key", v.serving.key, v.candidate.key
@@ -313,7 +333,10 @@ fn table(v: &Verdict) -> String {
         ));
     }
     if let Some(r) = &v.reference {
-        out.push_str(&format!("{:<12} {:>9.4}  (serving, --reference)\n", "key before", r.key));
+        out.push_str(&format!(
+            "{:<12} {:>9.4}  (serving, --reference)\n",
+            "key before", r.key
+        ));
     }
     let word = if v.accepted { "accepted" } else { "refused" };
     out.push_str(&format!("{word}: {}\n", v.reason));

@@ -30,8 +30,11 @@ pub struct RetrainArgs {
     /// Threads a retrain may use (at the lowest CPU priority: serving comes first).
     #[arg(long, env = "CROSSVIEW_RETRAIN_THREADS", default_value_t = 1)]
     pub retrain_threads: usize,
+    /// CPU niceness of a retrain (19: the lowest priority; serving comes first).
+    #[arg(long, env = "CROSSVIEW_RETRAIN_NICE", default_value_t = 19)]
+    pub retrain_nice: i32,
     /// Stream recorded after the training data that the gate reads, at least.
-    #[arg(long, env = "CROSSVIEW_RETRAIN_GATE_AFTER", default_value = "60s", value_parser = parse_duration)]
+    #[arg(long, env = "CROSSVIEW_RETRAIN_GATE_AFTER", default_value = "2m", value_parser = parse_duration)]
     pub retrain_gate_after: Duration,
     /// Least time between two retrains of one scene.
     #[arg(long, env = "CROSSVIEW_RETRAIN_INTERVAL", default_value = "15m", value_parser = parse_duration)]
@@ -70,6 +73,7 @@ impl RetrainArgs {
             after: self.retrain_after,
             epochs: self.retrain_epochs,
             threads: self.retrain_threads,
+            nice: self.retrain_nice,
             gate_after: self.retrain_gate_after,
             interval: self.retrain_interval,
             timeout: self.retrain_timeout,

@@ -225,3 +225,67 @@ fn combine_refuses_models_of_other_cameras() {
     );
     assert!(!dir.path().join("e.onnx").exists());
 }
+
+/// `crossview model gate`: a candidate no better than the serving model is refused with exit
+/// status 3 and the reason (here the serving model against itself, on frames where one camera
+/// turned); an untrained candidate is refused; a camera the scene lacks, a corrupt candidate
+/// and a tolerance outside [0, 1] are errors (exit 1) that say what is wrong.
+#[test]
+fn gate_refuses_a_candidate_that_is_no_better_and_names_bad_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("moved.jsonl");
+    let st = crossview()
+        .args([
+            "simulate", "--preset", "square4", "--frames", "300", "--seed", "4",
+        ])
+        .args(["--no-ids", "--move", "cam1@5:pan=5%", "--out"])
+        .arg(&rec)
+        .output()
+        .unwrap();
+    assert!(st.status.success(), "{st:?}");
+    let demo = crossview_testing::repo_root().join("models/demo.onnx");
+    let untrained = dir.path().join("untrained.onnx");
+    let st = crossview()
+        .args(["model", "init", "--scene-from"])
+        .arg(&rec)
+        .arg("--out")
+        .arg(&untrained)
+        .output()
+        .unwrap();
+    assert!(st.status.success(), "{st:?}");
+    let gate = |candidate: &std::path::Path, extra: &[&str]| {
+        crossview()
+            .args(["model", "gate", "--json", "--serving"])
+            .arg(&demo)
+            .arg("--candidate")
+            .arg(candidate)
+            .arg("--data")
+            .arg(&rec)
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    for candidate in [&demo, &untrained] {
+        let out = gate(candidate, &["--camera", "cam1"]);
+        assert_eq!(out.status.code(), Some(3), "{out:?}");
+        let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        assert_eq!(v["accepted"], false, "{v}");
+        assert!(v["reason"].as_str().unwrap().contains("key"), "{v}");
+        // The turned camera is the one that stands out under the serving model.
+        let cams = v["serving"]["cameras"].as_array().unwrap();
+        let cam1 = cams[1].as_f64().unwrap();
+        assert!(cams.iter().all(|c| c.as_f64().unwrap() >= cam1), "{v}");
+    }
+    let junk = dir.path().join("junk.onnx");
+    std::fs::write(&junk, b"not a model").unwrap();
+    for (candidate, extra, says) in [
+        (&demo, vec!["--camera", "nope"], "nope"),
+        (&junk, vec![], "junk.onnx"),
+        (&demo, vec!["--tolerance", "2"], "--tolerance"),
+    ] {
+        let out = gate(candidate, &extra);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{extra:?}: {err}");
+        assert!(err.contains(says), "{extra:?}: {err}");
+    }
+}

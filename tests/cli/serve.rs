@@ -99,3 +99,45 @@ fn a_memory_share_outside_its_range_is_refused() {
         assert!(err.contains("memory"), "{args:?} {env:?}: {err}");
     }
 }
+
+/// Healing settings that cannot heal stop `serve` with a message naming them: `--auto-retrain`
+/// without `--record` (nothing to learn from), a zero epoch count, a tolerance outside [0, 1].
+#[test]
+fn healing_without_a_recording_or_with_bad_bounds_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = crossview_testing::export_model(dir.path(), "lab");
+    let (model, rec) = (model.to_str().unwrap(), dir.path().join("rec"));
+    let rec = rec.to_str().unwrap();
+    for (extra, says) in [
+        (vec!["--auto-retrain"], "--record"),
+        (
+            vec!["--auto-retrain", "--record", rec, "--retrain-epochs", "0"],
+            "--retrain-epochs",
+        ),
+        (
+            vec![
+                "--auto-retrain",
+                "--record",
+                rec,
+                "--retrain-tolerance",
+                "2",
+            ],
+            "--retrain-tolerance",
+        ),
+        (
+            vec!["--auto-retrain", "--record", rec, "--retrain-after", "0s"],
+            "--retrain-after",
+        ),
+    ] {
+        let mut args = vec!["serve", "--model", model, "--listen", "127.0.0.1:0"];
+        args.extend_from_slice(&extra);
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_crossview"))
+            .args(&args)
+            .env_remove("CROSSVIEW_AUTO_RETRAIN")
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{extra:?} started");
+        assert!(err.contains(says), "{extra:?}: {err}");
+    }
+}

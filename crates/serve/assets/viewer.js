@@ -156,6 +156,7 @@
     $('panels').style.setProperty('--rows', String(Math.max(1, Math.ceil(cams.length / cols))));
     $('panels').replaceChildren(...view.panels.map((p) => p.el));
     showClock(info);
+    showRetrain(info);
     connect(view.generation);
   }
 
@@ -467,6 +468,30 @@
     }
   }
 
+  // Healing (`serve --auto-retrain`, the scene description's `retrain`): data-retrain is the
+  // state (idle, waiting, training, gating); the text says what is happening and how the
+  // last retrain ended.
+  const RETRAIN_TEXT = {
+    idle: 'watching',
+    waiting: 'recording the new view of ',
+    training: 'retraining for ',
+    gating: 'checking the retrained model for ',
+  };
+
+  function showRetrain(info) {
+    const r = info && info.retrain;
+    $('retrain-row').hidden = !r;
+    if (!r || !(r.state in RETRAIN_TEXT)) return;
+    const el = $('retrain');
+    el.dataset.retrain = r.state;
+    const cams = Array.isArray(r.cameras) ? r.cameras.join(', ') : '';
+    let text = RETRAIN_TEXT[r.state] + (r.state === 'idle' ? '' : cams);
+    if (r.last_outcome) text += ' · last: ' + r.last_outcome;
+    el.textContent = text;
+    el.title = (r.last_reason || '') + (r.last_model ? ' (' + r.last_model + ')' : '') +
+      ' · ' + (r.swapped || 0) + ' of ' + (r.attempts || 0) + ' retrains swapped in';
+  }
+
   async function pollClock() {
     if (!view.scene) return;
     const generation = view.generation;
@@ -475,6 +500,7 @@
       if (generation === view.generation) {
         showClock(info);
         showFit(info);
+        showRetrain(info);
       }
     } catch (e) {
       // The event stream reports connection and key problems; a missed poll is retried.

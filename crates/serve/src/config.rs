@@ -382,7 +382,7 @@ pub struct ServeConfig {
     /// Record every accepted batch ([`super::record`]) when set.
     pub record: Option<super::record::RecordConfig>,
     /// Heal scenes whose camera stopped fitting ([`crate::heal`], needs `record`) when set.
-    pub heal: Option<super::heal::HealConfig>,
+    pub heal: Option<super::heal::config::HealConfig>,
     /// Kafka mode ([`crate::transport::kafka`]) beside gRPC and HTTP, when set.
     pub kafka: Option<crate::transport::kafka::config::KafkaConfig>,
     /// Threads of the inference pool every scene's work runs on (0: one per core).

@@ -77,6 +77,21 @@ pub struct Server {
     hangup: Option<tokio::signal::unix::Signal>,
 }
 
+/// Refuses healing settings that cannot heal, and healing without a recording to learn from.
+fn check_heal(config: &ServeConfig) -> Result<()> {
+    let Some(h) = &config.heal else {
+        return Ok(());
+    };
+    h.validate()?;
+    if config.record.is_none() {
+        return Err(Error::invalid(
+            "--auto-retrain",
+            "needs --record: a retrain learns from what the server recorded",
+        ));
+    }
+    Ok(())
+}
+
 /// Logs a scene as it starts: its model's version, or that it has none yet.
 fn log_scene(spec: &crossview_core::SceneSpec, model: Option<&SceneInfo>) {
     match model {
@@ -152,15 +167,7 @@ impl Server {
                 });
             }
         }
-        if let Some(h) = &config.heal {
-            h.validate()?;
-            if config.record.is_none() {
-                return Err(Error::invalid(
-                    "--auto-retrain",
-                    "needs --record: a retrain learns from what the server recorded",
-                ));
-            }
-        }
+        check_heal(&config)?;
         let recorder = match &config.record {
             Some(rc) => Some(record::Recorder::start(
                 rc.clone(),

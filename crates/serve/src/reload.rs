@@ -11,8 +11,8 @@ use std::sync::{Arc, Mutex};
 
 use crate::config::{Limits, ModelSpec};
 use crate::error::{Error, Result};
-use crate::metrics::Metrics;
 use crate::locks::lock;
+use crate::metrics::Metrics;
 use crate::registry;
 use crate::scene::Scene;
 
@@ -58,7 +58,10 @@ impl Reloader {
     /// The model file scene `scene` is served from, when it has one.
     pub(crate) fn path_of(&self, scene: &str) -> Option<PathBuf> {
         let models = lock(&self.models);
-        models.iter().find(|m| m.name == scene).map(|m| m.path.clone())
+        models
+            .iter()
+            .find(|m| m.name == scene)
+            .map(|m| m.path.clone())
     }
 
     /// Swaps the model file `path` into `scene` as a reload does and, when it is swapped in,

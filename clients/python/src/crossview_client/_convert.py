@@ -146,6 +146,18 @@ def scene_from_pb(s: pb.Scene) -> Scene:
                 for c in s.fit.cameras
             ],
         }
+    retrain: dict[str, Any] | None = None
+    if s.HasField("retrain"):
+        r = s.retrain
+        retrain = {
+            "state": r.state,
+            "cameras": list(r.cameras),
+            "attempts": r.attempts,
+            "swapped": r.swapped,
+            "last_outcome": r.last_outcome or None,
+            "last_reason": r.last_reason or None,
+            "last_model": r.last_model or None,
+        }
     return Scene(
         name=s.name,
         cameras=tuple(Camera(c.name, c.width, c.height, c.offset) for c in s.cameras),
@@ -156,6 +168,7 @@ def scene_from_pb(s: pb.Scene) -> Scene:
         sync_timeout_ms=s.sync_timeout_ms,
         clock=clock,
         fit=fit,
+        retrain=retrain,
     )
 
 
@@ -211,6 +224,7 @@ def scene_from_json(obj: object) -> Scene:
     s = _expect(obj, "scene")
     clock = s.get("clock")
     fit = s.get("fit")
+    retrain = s.get("retrain")
     return Scene(
         name=str(s["name"]),
         cameras=tuple(
@@ -224,6 +238,7 @@ def scene_from_json(obj: object) -> Scene:
         sync_timeout_ms=int(s.get("sync_timeout_ms") or 0),
         clock=clock if isinstance(clock, Mapping) else None,
         fit=fit if isinstance(fit, Mapping) else None,
+        retrain=retrain if isinstance(retrain, Mapping) else None,
     )
 
 

@@ -223,6 +223,10 @@ class Scene:
     #: Whether each camera still fits the model (``docs/camera-fit.md``): ``as_of_frame``,
     #: ``frames`` and per camera ``score`` and ``state``; ``None`` while unknown.
     fit: Mapping[str, Any] | None = field(default=None, compare=False)
+    #: Healing (``serve --auto-retrain``, ``docs/camera-fit.md``): ``state`` (idle, waiting,
+    #: training, gating), ``cameras``, ``attempts``, ``swapped`` and the last retrain's
+    #: ``last_outcome``, ``last_reason``, ``last_model``; ``None`` when healing is off.
+    retrain: Mapping[str, Any] | None = field(default=None, compare=False)
 
 
 @dataclass(frozen=True, slots=True)

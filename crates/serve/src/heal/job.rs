@@ -85,10 +85,11 @@ impl Job {
             Err(_) => Outcome::TimedOut,
         };
         if !matches!(outcome, Outcome::Swapped { .. }) {
-            let _ = std::fs::remove_file(&candidate);
-            let _ = std::fs::remove_file(candidate.with_extension("svg"));
+            remove_model(&candidate);
         }
         let _ = std::fs::remove_dir_all(candidate.with_extension("checkpoint"));
+        let serving = self.service.model_path(self.scene.name());
+        prune(&self.cfg.dir, &name, serving.as_deref());
         outcome
     }
 
@@ -121,17 +122,21 @@ impl Job {
         };
         let log = candidate.with_extension("log");
         let train = self.train_args(&serving, candidate, &data, members);
-        if let Err(e) = run_child(&self.cfg.program, &train, &log).await.and_then(|o| {
-            (o.code == Some(0))
-                .then_some(())
-                .ok_or_else(|| format!("training failed: {}", o.tail))
-        }) {
+        if let Err(e) = run_child(&self.cfg.program, &train, &log)
+            .await
+            .and_then(|o| {
+                (o.code == Some(0))
+                    .then_some(())
+                    .ok_or_else(|| format!("training failed: {}", o.tail))
+            })
+        {
             return Outcome::Failed(e);
         }
-        // The gate reads only what was recorded after the training data.
+        // The gate reads only what was recorded after the training data, at least
+        // `gate_after` of it.
+        self.set_state("gating");
         let wait = self.cfg.gate_after.saturating_sub(cut.elapsed());
         tokio::time::sleep(wait).await;
-        self.set_state("gating");
         let fresh: Vec<PathBuf> = rec.files_from(to).into_iter().map(|(_, p)| p).collect();
         let verdict = match self.gate(&serving, candidate, &fresh, &log).await {
             Ok(v) => v,
@@ -167,9 +172,8 @@ impl Job {
         data: &[PathBuf],
         members: usize,
     ) -> Vec<String> {
-        let mut args: Vec<String> = ["--nice", "19", "train", "--quiet", "--no-sync-check"]
-            .map(String::from)
-            .into();
+        let mut args: Vec<String> = vec!["--nice".into(), self.cfg.nice.to_string()];
+        args.extend(["train", "--quiet", "--no-sync-check"].map(String::from));
         for d in data {
             args.extend(["--data".into(), d.display().to_string()]);
         }
@@ -212,9 +216,8 @@ impl Job {
                 "nothing was recorded after the training data to gate on".into(),
             ));
         }
-        let mut args: Vec<String> = ["--nice", "19", "model", "gate", "--json"]
-            .map(String::from)
-            .into();
+        let mut args: Vec<String> = vec!["--nice".into(), self.cfg.nice.to_string()];
+        args.extend(["model", "gate", "--json"].map(String::from));
         args.extend(["--tolerance".into(), self.cfg.tolerance.to_string()]);
         args.extend(["--serving".into(), serving.display().to_string()]);
         args.extend(["--candidate".into(), candidate.display().to_string()]);
@@ -243,6 +246,55 @@ impl Job {
             _ => Err(Outcome::Failed(format!("the gate failed: {}", out.tail))),
         }
     }
+}
+
+/// Retrained models of scene `scene` kept in `dir` besides the serving one, and retrain logs.
+const KEEP_MODELS: usize = 3;
+const KEEP_LOGS: usize = 20;
+
+/// Bounds what retrains of `scene` leave in `dir`: its newest [`KEEP_MODELS`] models (with
+/// their curves) and the serving one, its newest [`KEEP_LOGS`] logs.
+fn prune(dir: &Path, scene: &str, serving: Option<&Path>) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    let prefix = format!("{scene}-");
+    let mut files: Vec<PathBuf> = entries
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| {
+            // `<scene>-<unix seconds>.<ext>` (not another scene's whose name extends this one)
+            p.file_name()
+                .and_then(|n| n.to_str()?.strip_prefix(&prefix))
+                .and_then(|rest| rest.split_once('.'))
+                .is_some_and(|(stamp, _)| {
+                    !stamp.is_empty() && stamp.bytes().all(|b| b.is_ascii_digit())
+                })
+        })
+        .collect();
+    // Names carry the start time (seconds): newest first.
+    files.sort_unstable_by(|a, b| b.cmp(a));
+    let of = |ext: &'static str| {
+        files
+            .iter()
+            .filter(move |p| p.extension().is_some_and(|e| e == ext))
+    };
+    for old in of("onnx")
+        .filter(|p| Some(p.as_path()) != serving)
+        .skip(KEEP_MODELS)
+    {
+        remove_model(old);
+    }
+    for old in of("log").skip(KEEP_LOGS) {
+        let _ = std::fs::remove_file(old);
+    }
+}
+
+/// Removes a model file and what its training wrote beside it (curve, history).
+fn remove_model(path: &Path) {
+    let _ = std::fs::remove_file(path);
+    let _ = std::fs::remove_file(path.with_extension("svg"));
+    let _ = std::fs::remove_file(path.with_extension("history.json"));
 }
 
 /// The number of members of the model file `path`.

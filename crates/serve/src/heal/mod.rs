@@ -22,100 +22,20 @@
 //!
 //! Status in `GetScene` (`retrain`), `crossview_retrains_total{scene,outcome}`,
 //! `crossview_retrain_running{scene}` and a log line per step.
+pub mod config;
 mod job;
 
 use std::collections::BTreeMap;
-use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use crossview_api::types::RetrainStatus;
 
-use crate::error::{Error, Result};
 use crate::locks::lock;
 use crate::scene::Scene;
 use crate::service::Service;
+pub use config::HealConfig;
 use job::{Job, Outcome};
-
-/// How the server heals a scene whose camera stopped fitting (see the module docs).
-#[derive(Debug, Clone, PartialEq)]
-pub struct HealConfig {
-    /// The `crossview` executable that trains and gates (the server's own).
-    pub program: PathBuf,
-    /// Where candidate models and their logs are written.
-    pub dir: PathBuf,
-    /// How long a camera must not fit before a retrain starts; what the retrain learns from
-    /// is recorded meanwhile.
-    pub after: Duration,
-    /// Epochs each member of the model is fine-tuned for (`crossview train --epochs`): a fixed
-    /// amount of work, so a busy machine makes a retrain slower, not worse.
-    pub epochs: usize,
-    /// Threads the training may use.
-    pub threads: usize,
-    /// Stream recorded after the training data that the gate reads (at least).
-    pub gate_after: Duration,
-    /// Least time between the starts of two retrains of one scene.
-    pub interval: Duration,
-    /// A retrain (training and gate) still running after this long is stopped.
-    pub timeout: Duration,
-    /// Length of the stretches of recording kept as the reference of a scene whose cameras
-    /// all fit.
-    pub reference_every: Duration,
-    /// How far below the scene's label-free key on the reference a retrained model's may be
-    /// (`crossview model gate --tolerance`).
-    pub tolerance: f64,
-}
-
-impl HealConfig {
-    /// Defaults for the executable `program` writing into `dir` (chosen on the simulator,
-    /// BENCHMARKS.md "Healing"): retrain after 5 minutes without fit, 150 epochs per member
-    /// on one thread, a gate on at least 60 s of new stream, at most one retrain per scene
-    /// every 15 minutes, each stopped after 30 minutes.
-    pub fn new(program: impl Into<PathBuf>, dir: impl Into<PathBuf>) -> Self {
-        HealConfig {
-            program: program.into(),
-            dir: dir.into(),
-            after: Duration::from_secs(300),
-            epochs: 150,
-            threads: 1,
-            gate_after: Duration::from_secs(60),
-            interval: Duration::from_secs(15 * 60),
-            timeout: Duration::from_secs(30 * 60),
-            reference_every: Duration::from_secs(5 * 60),
-            tolerance: 0.03,
-        }
-    }
-
-    /// Refuses settings that cannot heal.
-    pub fn validate(&self) -> Result<()> {
-        let bad = |flag: &str, why: &str| Err(Error::invalid(flag, why.to_string()));
-        if self.after < Duration::from_secs(1) {
-            return bad("--retrain-after", "must be at least 1s");
-        }
-        if !(1..=100_000).contains(&self.epochs) {
-            return bad("--retrain-epochs", "must be within 1..=100000");
-        }
-        if !(1..=64).contains(&self.threads) {
-            return bad("--retrain-threads", "must be within 1..=64");
-        }
-        if self.gate_after < Duration::from_secs(1) {
-            return bad("--retrain-gate-after", "must be at least 1s");
-        }
-        if self.reference_every < Duration::from_secs(1) {
-            return bad("--retrain-reference-every", "must be at least 1s");
-        }
-        if !(0.0..=1.0).contains(&self.tolerance) {
-            return bad("--retrain-tolerance", "must be within [0, 1]");
-        }
-        if self.timeout < Duration::from_secs(1) {
-            return bad("--retrain-timeout", "must be at least 1s");
-        }
-        if self.program.as_os_str().is_empty() || self.dir.as_os_str().is_empty() {
-            return bad("--auto-retrain", "needs the crossview executable and a directory");
-        }
-        Ok(())
-    }
-}
 
 /// One scene's healing state.
 struct SceneHeal {
@@ -221,7 +141,10 @@ async fn keep_reference(heal: &mut SceneHeal, all_fit: bool, cfg: &HealConfig) {
         heal.fitting = None;
         return;
     }
-    if heal.fitting.is_some_and(|(t, _)| t.elapsed() < cfg.reference_every) {
+    if heal
+        .fitting
+        .is_some_and(|(t, _)| t.elapsed() < cfg.reference_every)
+    {
         return;
     }
     let Some(seq) = heal.scene.recorder().map(|r| r.mark()) else {
@@ -272,6 +195,8 @@ async fn step(
                 since: Instant::now(),
                 from,
             };
+            // The stretch being recorded holds the change: not a reference.
+            heal.fitting = None;
             update(heal, |s| {
                 s.state = "waiting".into();
                 s.cameras = bad;

@@ -212,7 +212,7 @@ class Camera(_message.Message):
     def __init__(self, name: _Optional[str] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., offset: _Optional[int] = ...) -> None: ...
 
 class Scene(_message.Message):
-    __slots__ = ("name", "cameras", "threshold", "alpha", "model_version", "appearance_length", "sync_timeout_ms", "clock", "fit")
+    __slots__ = ("name", "cameras", "threshold", "alpha", "model_version", "appearance_length", "sync_timeout_ms", "clock", "fit", "retrain")
     NAME_FIELD_NUMBER: _ClassVar[int]
     CAMERAS_FIELD_NUMBER: _ClassVar[int]
     THRESHOLD_FIELD_NUMBER: _ClassVar[int]
@@ -222,6 +222,7 @@ class Scene(_message.Message):
     SYNC_TIMEOUT_MS_FIELD_NUMBER: _ClassVar[int]
     CLOCK_FIELD_NUMBER: _ClassVar[int]
     FIT_FIELD_NUMBER: _ClassVar[int]
+    RETRAIN_FIELD_NUMBER: _ClassVar[int]
     name: str
     cameras: _containers.RepeatedCompositeFieldContainer[Camera]
     threshold: float
@@ -231,7 +232,26 @@ class Scene(_message.Message):
     sync_timeout_ms: int
     clock: ClockEstimate
     fit: FitEstimate
-    def __init__(self, name: _Optional[str] = ..., cameras: _Optional[_Iterable[_Union[Camera, _Mapping]]] = ..., threshold: _Optional[float] = ..., alpha: _Optional[float] = ..., model_version: _Optional[str] = ..., appearance_length: _Optional[int] = ..., sync_timeout_ms: _Optional[int] = ..., clock: _Optional[_Union[ClockEstimate, _Mapping]] = ..., fit: _Optional[_Union[FitEstimate, _Mapping]] = ...) -> None: ...
+    retrain: RetrainStatus
+    def __init__(self, name: _Optional[str] = ..., cameras: _Optional[_Iterable[_Union[Camera, _Mapping]]] = ..., threshold: _Optional[float] = ..., alpha: _Optional[float] = ..., model_version: _Optional[str] = ..., appearance_length: _Optional[int] = ..., sync_timeout_ms: _Optional[int] = ..., clock: _Optional[_Union[ClockEstimate, _Mapping]] = ..., fit: _Optional[_Union[FitEstimate, _Mapping]] = ..., retrain: _Optional[_Union[RetrainStatus, _Mapping]] = ...) -> None: ...
+
+class RetrainStatus(_message.Message):
+    __slots__ = ("state", "cameras", "attempts", "swapped", "last_outcome", "last_reason", "last_model")
+    STATE_FIELD_NUMBER: _ClassVar[int]
+    CAMERAS_FIELD_NUMBER: _ClassVar[int]
+    ATTEMPTS_FIELD_NUMBER: _ClassVar[int]
+    SWAPPED_FIELD_NUMBER: _ClassVar[int]
+    LAST_OUTCOME_FIELD_NUMBER: _ClassVar[int]
+    LAST_REASON_FIELD_NUMBER: _ClassVar[int]
+    LAST_MODEL_FIELD_NUMBER: _ClassVar[int]
+    state: str
+    cameras: _containers.RepeatedScalarFieldContainer[str]
+    attempts: int
+    swapped: int
+    last_outcome: str
+    last_reason: str
+    last_model: str
+    def __init__(self, state: _Optional[str] = ..., cameras: _Optional[_Iterable[str]] = ..., attempts: _Optional[int] = ..., swapped: _Optional[int] = ..., last_outcome: _Optional[str] = ..., last_reason: _Optional[str] = ..., last_model: _Optional[str] = ...) -> None: ...
 
 class FitEstimate(_message.Message):
     __slots__ = ("frames", "as_of_frame", "cameras")
