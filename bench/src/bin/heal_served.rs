@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use clap::Parser;
-use crossview::demo::score::pair_records;
+use crossview::demo::score::{TruthIds, pair_records};
 use crossview_api::convert::identity_from_pb;
 use crossview_core::identity::Identity;
 use crossview_data::read_recording;
@@ -169,28 +169,6 @@ async fn main() -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Each box's person; a false detection (no id) is a person of its own, so that a link to it
-/// is wrong and leaving it alone is right.
-fn truth_of(frame: &crossview_core::Frame) -> Vec<Option<Vec<u64>>> {
-    let mut fake = u64::MAX;
-    frame
-        .views
-        .iter()
-        .map(|v| {
-            v.as_ref().map(|dets| {
-                dets.iter()
-                    .map(|d| {
-                        d.id.unwrap_or_else(|| {
-                            fake -= 1;
-                            fake
-                        })
-                    })
-                    .collect()
-            })
-        })
-        .collect()
-}
-
 /// The JSON report of one run.
 fn score(
     args: &Args,
@@ -215,6 +193,8 @@ fn score(
     let (mut idle_lat, mut busy_lat) = (Vec::new(), Vec::new());
     let mut partial = 0usize;
     let mut running = false;
+    // A false detection (no id) is a person of its own: a link to it is wrong.
+    let mut truth_ids = TruthIds::new();
     for frame in &rec.frames {
         let Some((r, at)) = seen.get(&frame.frame_id) else {
             partial += 1;
@@ -230,7 +210,7 @@ fn score(
         } else if running {
             busy_lat.push(latency * 1000.0);
         }
-        let truth = truth_of(frame);
+        let truth = truth_ids.of_frame(frame);
         let all: Vec<Identity> = r.identities.iter().map(identity_from_pb).collect();
         let records = pair_records(frame.frame_id, names, &truth, &all)?;
         if frame.frame_id < args.moved_at {
