@@ -22,11 +22,10 @@ use anyhow::{Context, bail};
 use clap::Args;
 use serde::Serialize;
 
-use crossview_core::fit::{FitConfig, contrast};
+use crossview_core::fit::{FitConfig, contrast, upper_median};
 use crossview_core::offsets::{CameraSeries, OffsetConfig, frame_step};
 use crossview_data::Recording;
 use crossview_model::read_ensemble;
-use crossview_model::{EncoderOptions, OnnxEncoder};
 use crossview_train::label_free::{LabelFreeScorer, LabelFreeScores};
 use crossview_train::prepare::{prepare, trained_filter};
 
@@ -164,10 +163,10 @@ fn judge(path: &PathBuf, recording: &Recording, seed: u64) -> anyhow::Result<Jud
         .unwrap_or(crossview_train::data::REFERENCE_FPS);
     prepare(&mut set, fps, &trained_filter(&meta).unwrap_or_default(), 1)?;
     let scorer = LabelFreeScorer::new(set, vec![meta.threshold], seed)?;
+    // One read of the file: its ensemble scores the key and embeds the fit's series.
     let mut encoder = ensemble;
     let (scores, _) = scorer.score(&mut encoder)?;
-    let mut onnx = OnnxEncoder::load_with(path, EncoderOptions { intra_threads: 1 })?;
-    let pairs = pair_contrasts(&mut onnx, recording)?;
+    let pairs = pair_contrasts(&mut encoder, recording)?;
     Ok(Judged {
         key: scores.key(),
         scores,
@@ -178,7 +177,7 @@ fn judge(path: &PathBuf, recording: &Recording, seed: u64) -> anyhow::Result<Jud
 
 /// Each camera pair's contrast over the whole recording.
 fn pair_contrasts(
-    encoder: &mut OnnxEncoder,
+    encoder: &mut dyn crossview_core::Encoder,
     recording: &Recording,
 ) -> anyhow::Result<Vec<(usize, usize, Option<f32>)>> {
     let n = recording.scene.cameras.len();
@@ -214,8 +213,7 @@ fn relative_contrast(n: usize, pairs: &[(usize, usize, Option<f32>)]) -> Vec<Opt
         .map(|&(s, k)| (k > 0).then(|| s / k as f32))
         .collect();
     let mut known: Vec<f32> = means.iter().flatten().copied().collect();
-    known.sort_unstable_by(f32::total_cmp);
-    let median = known.get(known.len() / 2).copied().filter(|m| *m > 0.0);
+    let median = upper_median(&mut known).filter(|m| *m > 0.0);
     means
         .iter()
         .map(|m| m.zip(median).map(|(m, g)| m / g))

@@ -70,7 +70,7 @@ pub fn contrast(profile: &PairProfile, since: i64, min_frames: usize) -> Option<
 
 /// The upper median of `values` (the middle one, or the higher of the two middle ones);
 /// `None` when empty. Sorts `values`.
-fn upper_median(values: &mut [f32]) -> Option<f32> {
+pub fn upper_median(values: &mut [f32]) -> Option<f32> {
     values.sort_unstable_by(f32::total_cmp);
     values.get(values.len() / 2).copied()
 }
