@@ -231,14 +231,9 @@ fn default_move(sim: &SimConfig) -> Option<crossview_data::sim::CameraMove> {
         .cameras
         .get(1)
         .filter(|_| sim.scene.cameras.len() >= 3)?;
-    Some(crossview_data::sim::CameraMove {
-        camera: camera.name.clone(),
-        // Simulated seconds: frame index / the simulator's rate.
-        at_s: sim.frames as f64 / sim.fps / 2.0,
-        pan_deg: crossview_data::sim::CameraMove::pan_for(0.05, camera.width, camera.focal_px),
-        tilt_deg: 0.0,
-        zoom: 1.0,
-    })
+    // Simulated seconds: frame index / the simulator's rate.
+    let at_s = sim.frames as f64 / sim.fps / 2.0;
+    Some(crossview_data::sim::CameraMove::pan(camera, at_s, 0.05))
 }
 
 fn print_frame(r: &FrameReport) {

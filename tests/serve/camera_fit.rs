@@ -74,16 +74,9 @@ async fn a_camera_that_turns_stops_fitting_and_a_late_clock_does_not() {
     let mut cfg = SimConfig::preset("square4").unwrap();
     cfg.frames = FRAMES;
     cfg.seed = 21;
-    let width = cfg.scene.cameras[MOVED].width;
-    let focal = cfg.scene.cameras[MOVED].focal_px;
-    cfg.moves = vec![CameraMove {
-        camera: cfg.scene.cameras[MOVED].name.clone(),
-        at_s: MOVE_AT as f64 / cfg.fps,
-        // The image centre moves by 5 % of the width.
-        pan_deg: CameraMove::pan_for(0.05, width, focal),
-        tilt_deg: 0.0,
-        zoom: 1.0,
-    }];
+    // The image centre moves by 5 % of the width.
+    let at_s = MOVE_AT as f64 / cfg.fps;
+    cfg.moves = vec![CameraMove::pan(&cfg.scene.cameras[MOVED], at_s, 0.05)];
     let mut sim = Simulator::new(&cfg).unwrap();
     let mut results = server.subscribe("demo").await;
     let names: Vec<String> = sim.scene().cameras.iter().map(|c| c.name.clone()).collect();

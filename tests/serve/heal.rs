@@ -73,17 +73,9 @@ async fn a_turned_camera_is_retrained_gated_and_swapped_in() {
 
     cfg.frames = FRAMES;
     cfg.seed = 31;
-    let (width, focal) = (
-        cfg.scene.cameras[MOVED].width,
-        cfg.scene.cameras[MOVED].focal_px,
-    );
-    cfg.moves = vec![CameraMove {
-        camera: cfg.scene.cameras[MOVED].name.clone(),
-        at_s: MOVE_AT as f64 / cfg.fps,
-        pan_deg: CameraMove::pan_for(0.05, width, focal),
-        tilt_deg: 0.0,
-        zoom: 1.0,
-    }];
+    // The image centre moves by 5 % of the width.
+    let at_s = MOVE_AT as f64 / cfg.fps;
+    cfg.moves = vec![CameraMove::pan(&cfg.scene.cameras[MOVED], at_s, 0.05)];
     let mut sim = Simulator::new(&cfg).unwrap();
     let names: Vec<String> = sim.scene().cameras.iter().map(|c| c.name.clone()).collect();
     // Read as they come (a subscriber that stops reading is cut off).

@@ -132,6 +132,18 @@ fn one() -> f64 {
 }
 
 impl CameraMove {
+    /// A pan of `camera` at `at_s` seconds that moves its image centre by `fraction` of the
+    /// image width (no tilt, no zoom).
+    pub fn pan(camera: &CameraConfig, at_s: f64, fraction: f64) -> Self {
+        CameraMove {
+            camera: camera.name.clone(),
+            at_s,
+            pan_deg: Self::pan_for(fraction, camera.width, camera.focal_px),
+            tilt_deg: 0.0,
+            zoom: 1.0,
+        }
+    }
+
     /// Checks the values: finite, within ±60° and a zoom within `[0.25, 4]`.
     pub fn validate(&self) -> Result<()> {
         if !self.at_s.is_finite() || self.at_s < 0.0 {
