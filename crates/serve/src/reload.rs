@@ -65,8 +65,8 @@ impl Reloader {
     }
 
     /// Swaps the model file `path` into `scene` as a reload does and, when it is swapped in,
-    /// makes it the scene's file (later reloads re-read it). Refused when the scene was not
-    /// served from `expected` any more (an operator's reload came first).
+    /// makes it the scene's file (later reloads re-read it). Outcome `superseded` when the
+    /// scene is not served from `expected` any more (an operator's reload came first).
     pub(crate) async fn adopt(
         &self,
         scene: Result<Arc<Scene>>,
@@ -92,7 +92,10 @@ impl Reloader {
                 "the scene's model file changed to {} meanwhile",
                 spec.path.display()
             ));
-            return refused(&spec, None, &e);
+            return ReloadOutcome {
+                outcome: "superseded".into(),
+                ..refused(&spec, None, &e)
+            };
         }
         spec.path = path.to_path_buf();
         let outcome = self.reload_one(scene, &spec).await;

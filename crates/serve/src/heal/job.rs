@@ -151,7 +151,7 @@ impl Job {
                 model: candidate.to_path_buf(),
                 reason: verdict,
             },
-            (_, Some(e)) if e.contains("changed to") => Outcome::Superseded(e),
+            ("superseded", e) => Outcome::Superseded(e.unwrap_or_default()),
             (o, e) => Outcome::Failed(format!("swap {o}: {}", e.unwrap_or_default())),
         }
     }

@@ -8,8 +8,8 @@
 //!    what follows is the new view;
 //! 2. after [`HealConfig::after`] it is cut again and `crossview train --init <serving model>`
 //!    fine-tunes every member of the serving model on the files between the two cuts, in a
-//!    child process at the lowest CPU priority (`--nice 19`, `--threads`), its time bounded
-//!    (`--max-train-seconds` per member, and [`HealConfig::timeout`] for the whole retrain);
+//!    child process at the lowest CPU priority (`--nice 19`, `--threads`) for a fixed number
+//!    of epochs ([`HealConfig::epochs`]), its time bounded by [`HealConfig::timeout`];
 //! 3. `crossview model gate` judges candidate and serving model on the files recorded after
 //!    the second cut (frames neither was trained or chosen on): the candidate must have the
 //!    higher label-free key and make every camera fit, and bring the scene back to how it was
@@ -30,6 +30,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use crossview_api::types::RetrainStatus;
+use crossview_core::fit::FitState;
 
 use crate::locks::lock;
 use crate::scene::Scene;
@@ -113,15 +114,16 @@ fn idle() -> RetrainStatus {
 /// The cameras of `scene` that do not fit now, by name, and whether every camera fits (or is
 /// silent, two at least fitting).
 fn misfits(scene: &Scene) -> (Vec<String>, bool) {
-    let Some(fit) = scene.describe().fit else {
+    let Some(fit) = scene.fit() else {
         return (Vec::new(), false);
     };
-    let state = |s: &str| fit.cameras.iter().filter(|c| c.state == s).count();
-    let all_fit = state("fits") >= 2 && state("fits") + state("silent") == fit.cameras.len();
+    let state = |s: FitState| fit.cameras.iter().filter(|c| c.state == s.as_str()).count();
+    let fits = state(FitState::Fits);
+    let all_fit = fits >= 2 && fits + state(FitState::Silent) == fit.cameras.len();
     let bad = fit
         .cameras
         .into_iter()
-        .filter(|c| c.state == "does_not_fit")
+        .filter(|c| c.state == FitState::DoesNotFit.as_str())
         .map(|c| c.camera)
         .collect();
     (bad, all_fit)

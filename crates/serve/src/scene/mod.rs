@@ -304,9 +304,14 @@ impl Scene {
             appearance_length: (app > 0).then_some(app),
             sync_timeout_ms: self.sync_timeout.as_millis() as u64,
             clock: self.clock_estimate(),
-            fit: lock(&self.fit).clone(),
+            fit: self.fit(),
             retrain: lock(&self.retrain).clone(),
         }
+    }
+
+    /// The fit watch's latest look at the cameras (`None` before the first, or since a swap).
+    pub(crate) fn fit(&self) -> Option<FitEstimate> {
+        lock(&self.fit).clone()
     }
 
     /// Publishes what healing is doing for the scene (in [`Self::describe`]).
