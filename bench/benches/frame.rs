@@ -8,7 +8,8 @@
 //! (`crossview model init --width 64 --fourier 32 --camera-dim 32 --seed 3`, the demo
 //! model's architecture and the issue's ≈ 11 MFLOP per frame) at widths 64 and 768, and
 //! ensembles of 2, 4 and 6 such width-64 encoders (`crossview train --ensemble`, width 128 /
-//! 256 / 384; 6 is the trainer's default).
+//! 256 / 384; 6 is the trainer's default), and the shapes of distilled students (one encoder
+//! of width 96 or 128, or of width 64 with 6 residual blocks).
 use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
@@ -40,18 +41,23 @@ fn bench_frame(c: &mut Criterion) {
         boxes as f64 / rec.frames.len() as f64
     );
     let mut g = c.benchmark_group("whole_frame_wildtrack_p95");
-    for (label, width, members) in [
-        ("w64", 64usize, 1u64),
-        ("w768", 768, 1),
-        ("w64x2", 64, 2),
-        ("w64x4", 64, 4),
-        ("w64x6", 64, 6),
+    // (label, width, residual blocks, members); w96, w128 and w64b6: distilled students'
+    // shapes (`crossview model distil --width / --blocks`).
+    for (label, width, blocks, members) in [
+        ("w64", 64usize, 3usize, 1u64),
+        ("w96", 96, 3, 1),
+        ("w128", 128, 3, 1),
+        ("w64b6", 64, 6, 1),
+        ("w768", 768, 3, 1),
+        ("w64x2", 64, 3, 2),
+        ("w64x4", 64, 3, 4),
+        ("w64x6", 64, 3, 6),
     ] {
         let config = EncoderConfig {
             width,
+            blocks,
             fourier_features: 32,
             camera_dim: 32,
-            ..EncoderConfig::default()
         };
         let ensemble = Ensemble::new(
             (0..members)

@@ -3,6 +3,7 @@
 use clap::{Parser, Subcommand};
 
 pub mod demo;
+pub mod distil;
 pub mod eval;
 pub mod fit_check;
 pub mod gate;

@@ -39,6 +39,10 @@ pub enum ModelCommand {
     /// recording neither was chosen on (what `serve --auto-retrain` checks before a swap);
     /// exit status 3 when refused.
     Gate(super::gate::GateArgs),
+    /// Train one encoder (the student) to reproduce an ensemble's cross-view distances on a
+    /// recording, without labels, and write it as its own model file: one member to serve
+    /// instead of many.
+    Distil(super::distil::DistilArgs),
 }
 
 /// Options of `crossview model combine`.
@@ -136,6 +140,7 @@ pub fn run(args: ModelArgs) -> anyhow::Result<()> {
         ModelCommand::Calibrate(a) => calibrate(a),
         ModelCommand::Combine(a) => combine(a),
         ModelCommand::Gate(a) => super::gate::run(a),
+        ModelCommand::Distil(a) => super::distil::run(a),
     }
 }
 

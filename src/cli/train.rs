@@ -9,9 +9,11 @@ use anyhow::Context;
 use clap::{Args, ValueEnum};
 
 use crossview_train::clean::BoxFilter;
+use crossview_train::distil::DistilOptions;
 use crossview_train::population::{DEFAULT_ENSEMBLE, DEFAULT_MEMBERS, PopulationOptions};
 use crossview_train::pseudo::PseudoOptions;
 use crossview_train::run::{RunOptions, run as run_training};
+use crossview_train::student::{DEFAULT_TOLERANCE, ExportMode, StudentOptions};
 use crossview_train::trainer::{CheckpointOptions, LrSchedule, Select, TrainConfig};
 
 /// Options of `crossview train`.
@@ -201,6 +203,24 @@ pub struct TrainArgs {
     /// finalists = all of them.
     #[arg(long, default_value_t = DEFAULT_ENSEMBLE as u16, value_parser = clap::value_parser!(u16).range(1..=16))]
     pub ensemble: u16,
+    /// [ours] What a population of more than one exported member writes: `ensemble` (the
+    /// default) that; `student` one encoder distilled from it (`crossview model distil`);
+    /// `auto` distils it and writes the student when, on the held-out frames, its label-free
+    /// key and expected accuracy are within `--student-tolerance` of the ensemble's. Not the
+    /// default: on WILDTRACK it let through a student 0.4 ACC points below its ensemble on the
+    /// training and validation frames (BENCHMARKS.md, "One student").
+    #[arg(long, default_value = "ensemble", env = "CROSSVIEW_TRAIN_EXPORT")]
+    pub export: ExportMode,
+    /// [ours] How far (a share: 0.003 = 0.3 points) the student's label-free key and expected
+    /// decision accuracy may each be below the ensemble's for `--export auto` to write it.
+    #[arg(long, default_value_t = DEFAULT_TOLERANCE)]
+    pub student_tolerance: f64,
+    /// [ours] The student's passes over the training frames.
+    #[arg(long, default_value_t = DistilOptions::default().epochs)]
+    pub student_epochs: usize,
+    /// [ours] The student's width (default: the members' width; twice their depth).
+    #[arg(long)]
+    pub student_width: Option<usize>,
     /// [ours] Also write every finalist of the population as its own model file in this
     /// directory (`member-<i>.onnx`).
     #[arg(long)]
@@ -425,6 +445,16 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         progress: !args.quiet,
         population: population_options(&args),
         members_out: args.members_out.clone(),
+        student: StudentOptions {
+            export: args.export,
+            distil: DistilOptions {
+                epochs: args.student_epochs,
+                width: args.student_width,
+                seed: args.seed,
+                ..DistilOptions::default()
+            },
+            tolerance: args.student_tolerance,
+        },
     })
     .with_context(|| {
         let names: Vec<_> = args.data.iter().map(|p| p.display().to_string()).collect();

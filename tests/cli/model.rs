@@ -1,6 +1,6 @@
 //! `crossview model init` writes a loadable encoder for a recording's scene; `model info`
-//! describes it; `model combine` joins encoders into one calibrated ensemble; a bad recording
-//! header is a clear error.
+//! describes it; `model combine` joins encoders into one calibrated ensemble; `model distil`
+//! teaches one encoder an ensemble's distances; a bad recording header is a clear error.
 use std::process::Command;
 
 use crossview_core::Encoder;
@@ -288,4 +288,83 @@ fn gate_refuses_a_candidate_that_is_no_better_and_names_bad_input() {
         assert_eq!(out.status.code(), Some(1), "{extra:?}: {err}");
         assert!(err.contains(says), "{extra:?}: {err}");
     }
+}
+
+#[test]
+fn distil_writes_one_calibrated_encoder_that_records_its_teacher() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("rec.jsonl");
+    moving_recording(&rec, &["a", "b"]);
+    let (a, b, e) = (
+        dir.path().join("a.onnx"),
+        dir.path().join("b.onnx"),
+        dir.path().join("e.onnx"),
+    );
+    init_model(&rec, &a, "1", "16");
+    init_model(&rec, &b, "2", "16");
+    let st = crossview()
+        .args(["model", "combine"])
+        .args([&a, &b])
+        .arg("--out")
+        .arg(&e)
+        .output()
+        .unwrap();
+    assert!(st.status.success(), "{st:?}");
+    let out = dir.path().join("s.onnx");
+    let distil = |teacher: &std::path::Path, data: &std::path::Path, extra: &[&str]| {
+        crossview()
+            .args(["model", "distil", "--teacher"])
+            .arg(teacher)
+            .arg("--data")
+            .arg(data)
+            .arg("--out")
+            .arg(&out)
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let st = distil(&e, &rec, &["--epochs", "2", "--all-boxes", "--width", "8"]);
+    assert!(st.status.success(), "{st:?}");
+    assert_eq!(OnnxEncoder::load(&out).unwrap().dim(), 8);
+    let st = distil(&e, &rec, &["--epochs", "8"]);
+    assert!(st.status.success(), "{st:?}");
+    let stdout = String::from_utf8_lossy(&st.stdout);
+    assert!(stdout.contains("one member of width 16"), "{stdout}");
+    // 40 frames hold out 4: too few for the label-free scores, and it says so.
+    assert!(stdout.contains("cannot be scored"), "{stdout}");
+    let mut s = OnnxEncoder::load(&out).unwrap();
+    assert_eq!(s.dim(), 16);
+    let meta = s.metadata().clone();
+    assert!(meta.calibration.is_some(), "the student is calibrated");
+    let record: serde_json::Value =
+        serde_json::from_str(&meta.extra["crossview.distilled"]).unwrap();
+    assert_eq!(record["teacher"], "e.onnx");
+    assert_eq!(record["teacher_members"], 2);
+    assert_eq!(record["teacher_width"], 32);
+    assert!(!meta.extra.contains_key("crossview.ensemble"));
+    assert_eq!(
+        s.embed(&[[0.1, 0.1, 0.3, 0.6]], &[1]).unwrap().dim(),
+        (1, 16)
+    );
+
+    // Bad input: named, nothing written.
+    std::fs::remove_file(&out).unwrap();
+    let st = distil(&e, &rec, &["--epochs", "0"]);
+    assert!(!st.status.success());
+    assert!(String::from_utf8_lossy(&st.stderr).contains("must be positive"));
+    let other = dir.path().join("other.jsonl");
+    moving_recording(&other, &["c", "d"]);
+    let st = distil(&e, &other, &[]);
+    assert!(!st.status.success());
+    let junk = dir.path().join("junk.onnx");
+    std::fs::write(&junk, b"not a model").unwrap();
+    let st = distil(&junk, &rec, &[]);
+    assert!(!st.status.success());
+    assert!(String::from_utf8_lossy(&st.stderr).contains("junk.onnx"));
+    let st = distil(&e, &rec, &["--match-threshold", "1.5"]);
+    assert!(!st.status.success());
+    assert!(String::from_utf8_lossy(&st.stderr).contains("--match-threshold"));
+    let st = distil(&e, &rec, &["--loss", "cosine"]);
+    assert!(!st.status.success());
+    assert!(!out.exists());
 }

@@ -1,7 +1,8 @@
 //! `crossview train --population K`: K members trained side by side, the worse ones dropped
 //! by the label-free key; the model file records every member and which one won; the best
 //! finalists can be exported together (`--ensemble`) and each on its own (`--members-out`);
-//! without held-out frames to rank them, the flag is refused.
+//! without held-out frames to rank them, the flag is refused; the ensemble's student is written
+//! instead when asked, or when it scores within the tolerance of the ensemble (`--export auto`).
 use crossview_core::Encoder;
 use crossview_data::recording::write_recording;
 use crossview_model::{OnnxEncoder, read_ensemble, read_weights};
@@ -90,6 +91,8 @@ fn the_best_finalists_are_exported_together_and_each_on_its_own() {
         "none",
         "--ensemble",
         "2",
+        "--export",
+        "ensemble",
         "--members-out",
         members_out.to_str().unwrap(),
     ];
@@ -99,6 +102,9 @@ fn the_best_finalists_are_exported_together_and_each_on_its_own() {
     let (ensemble, meta) = read_ensemble(&out).unwrap();
     assert_eq!(ensemble.members().len(), 2);
     assert!(meta.calibration.is_some(), "the ensemble is calibrated");
+    let export = export_record(&meta);
+    assert_eq!(export["exported"], "ensemble");
+    assert!(export["student"].is_null(), "no student trained: {export}");
     let pop = population(&meta);
     // `--halve-at none`: every member trains to the end.
     assert_none_dropped(&pop);
@@ -189,4 +195,59 @@ fn an_ensemble_initialises_the_members_of_the_next_run() {
     train_ok(&data, &single, &[&one[..], &SMALL[..]].concat());
     let (w, _) = read_weights(&single).unwrap();
     assert_eq!(&w, &start.members()[0]);
+}
+
+/// What the model file says about the ensemble-or-student choice (`crossview.export`).
+fn export_record(meta: &crossview_model::ModelMetadata) -> serde_json::Value {
+    serde_json::from_str(&meta.extra["crossview.export"]).unwrap()
+}
+
+#[test]
+fn the_student_is_written_when_asked_or_when_it_scores_within_the_tolerance() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("train.jsonl");
+    write_recording(&data, &recording(3, 40, false)).unwrap();
+    let base = ["--population", "2", "--threads", "2", "--ensemble", "2"];
+    let run = |export: &str, out: &std::path::Path| {
+        let args = [
+            &base[..],
+            &["--export", export, "--student-epochs", "10"],
+            &SMALL[..],
+        ];
+        train_ok(&data, out, &args.concat())
+    };
+    // Asked for: one encoder of the members' width, with both label-free scores recorded.
+    let out = dir.path().join("student.onnx");
+    let st = run("student", &out);
+    assert!(String::from_utf8_lossy(&st.stdout).contains("exported the student"));
+    let (model, meta) = read_ensemble(&out).unwrap();
+    assert_eq!((model.members().len(), model.width()), (1, 16));
+    assert!(meta.calibration.is_some(), "the student is calibrated");
+    let export = export_record(&meta);
+    assert_eq!(export["exported"], "student", "{export}");
+    assert_eq!(export["student"]["width"], 16);
+    for side in ["ensemble_scores", "student_scores"] {
+        let acc = export[side]["expected_acc"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&acc), "{export}");
+    }
+    // Auto: whichever it wrote agrees with the scores it recorded.
+    let out = dir.path().join("auto.onnx");
+    run("auto", &out);
+    let (model, meta) = read_ensemble(&out).unwrap();
+    let export = export_record(&meta);
+    let score = |side: &str, what: &str| export[side][what].as_f64().unwrap();
+    let within = ["cycle", "expected_acc"]
+        .iter()
+        .all(|w| score("student_scores", w) >= score("ensemble_scores", w) - 0.003);
+    let want = if within {
+        ("student", 16)
+    } else {
+        ("ensemble", 32)
+    };
+    assert_eq!(export["exported"], want.0, "{export}");
+    assert_eq!(model.width(), want.1);
+    // A bad choice is refused before anything trains.
+    let st = crate::train::train(&data, &dir.path().join("x.onnx"), &["--export", "both"]);
+    assert!(!st.status.success());
+    assert!(String::from_utf8_lossy(&st.stderr).contains("--export"));
 }

@@ -10,6 +10,7 @@
 //!   (`hinge`: their triplet hinge over many pairs at once).
 //! - `transport`: **[ours]** the soft assignment that may replace the Hungarian pairs of the
 //!   synchronization loss early in the first stage.
+//! - [`distil`]: **[ours]** one student encoder taught an ensemble's cross-view distances.
 //! - [`pseudo`]: **[ours]** pseudo-identity labels from confident identities (self-training).
 //! - [`member`]: one run that advances an epoch at a time, scored, checkpointed, cloned.
 //! - [`population`]: **[ours]** members on every core, the worse half dropped by the
@@ -18,6 +19,7 @@
 //! - [`label_free`]: **[ours]** scores on held-out unlabelled frames that choose the epoch
 //!   and the threshold without labels.
 //! - [`calibrate`]: **[ours]** label-free `P(same person | distance)` for a trained encoder.
+//! - [`student`]: **[ours]** whether a run exports its ensemble or its student.
 //! - [`run`]: one whole run as `crossview train` does it, files written.
 
 pub mod adam;
@@ -27,6 +29,7 @@ pub mod clean;
 pub mod config;
 pub mod curve;
 pub mod data;
+pub mod distil;
 mod hinge;
 pub mod label_free;
 pub mod losses;
@@ -38,6 +41,7 @@ pub mod pseudo;
 pub mod run;
 pub mod sampler;
 pub mod state;
+pub mod student;
 pub mod trainer;
 mod transport;
 pub mod validate;

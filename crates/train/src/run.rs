@@ -18,6 +18,7 @@ use crate::label_free::LabelFreeScorer;
 use crate::population::{PopulationOptions, PopulationOutcome, train_population};
 use crate::prepare::{KEY_TRAIN_BOX_FILTER, KEY_TRAIN_FPS, Loaded, read_training_set};
 use crate::sampler::MIN_FRAMES;
+use crate::student::{Choice, StudentOptions, choose};
 use crate::trainer::{
     CheckpointOptions, Scoring, Select, TrainConfig, TrainOutcome, Validator, train_from,
 };
@@ -67,6 +68,9 @@ pub struct RunOptions {
     /// **[ours]** How many members train side by side ([`PopulationOptions::single`]: one
     /// run).
     pub population: PopulationOptions,
+    /// **[ours]** Whether a population's ensemble is distilled into one student, and which
+    /// of the two is written ([`crate::student`]).
+    pub student: StudentOptions,
     /// **[ours]** Also write every finalist of a population as its own model file here
     /// (`member-<i>.onnx`), to compare them or combine them differently later.
     pub members_out: Option<PathBuf>,
@@ -156,27 +160,47 @@ pub fn run(opts: RunOptions) -> Result<RunReport> {
     }
     let ensemble = exported_ensemble(&outcome, population.as_ref(), opts.population.ensemble)?;
     let threshold = meta.threshold;
+    let (ensemble, choice) = choose(ensemble, &set, scorer.as_ref(), &opts.student)?;
+    tracing::info!(exported = choice.exported, why = %choice.why, "export");
+    if choice.student.is_some() || ensemble.members().len() > 1 {
+        meta.extra.insert(
+            "crossview.export".into(),
+            serde_json::to_string(&choice).expect("the choice serialises"),
+        );
+    }
     export(&opts.out, &ensemble, meta, &whole, &opts)?;
     let curve = write_curve_and_history(&opts, &outcome, &data_name)?;
     let mut summary = summary(&outcome, threshold);
     warn_if_unsynchronized(&outcome, fps);
     if let Some(p) = &population {
-        summary.push_str(&format!("; population: {}", p.summary()));
-        let m = ensemble.members().len();
-        if m > 1 {
-            let chosen: Vec<String> = p.finalists[..m].iter().map(|f| f.0.to_string()).collect();
-            summary.push_str(&format!(
-                "; exported members {} together (width {})",
-                chosen.join(", "),
-                ensemble.width()
-            ));
-        }
+        summary.push_str(&population_summary(p, &ensemble, &choice));
     }
     Ok(RunReport {
         summary,
         data: read_summary,
         curve,
     })
+}
+
+/// The population's part of the run's summary: its members, what was exported and why.
+fn population_summary(p: &PopulationOutcome, exported: &Ensemble, choice: &Choice) -> String {
+    let mut s = format!("; population: {}", p.summary());
+    let m = exported.members().len();
+    if m > 1 {
+        let chosen: Vec<String> = p.finalists[..m].iter().map(|f| f.0.to_string()).collect();
+        s.push_str(&format!(
+            "; exported members {} together (width {})",
+            chosen.join(", "),
+            exported.width()
+        ));
+    }
+    if choice.student.is_some() {
+        s.push_str(&format!(
+            "; exported the {}: {}",
+            choice.exported, choice.why
+        ));
+    }
+    s
 }
 
 /// What is exported: the best `size` finalists of a population as one encoder, or the

@@ -196,6 +196,9 @@ impl Job {
             members.clone(),
             "--ensemble".into(),
             members,
+            // The retrained model keeps the serving model's form (no student of it).
+            "--export".into(),
+            "ensemble".into(),
             "--data-name".into(),
             format!("{} (retrained by serve)", self.scene.name()),
         ]);
