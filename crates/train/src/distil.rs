@@ -86,6 +86,11 @@ impl Default for DistilOptions {
     }
 }
 
+/// Widest student [`distil`] trains (the default members are 64 wide).
+pub const MAX_WIDTH: usize = 4096;
+/// Deepest student [`distil`] trains.
+pub const MAX_BLOCKS: usize = 64;
+
 /// A trained student.
 #[derive(Debug, Clone)]
 pub struct DistilOutcome {
@@ -137,6 +142,17 @@ pub fn distil(
         return Err(Error::invalid(
             "distil",
             format!("epochs, frames per step and the learning rate must be positive, got {opts:?}"),
+        ));
+    }
+    let shape_ok = |v: Option<usize>, max: usize| v.is_none_or(|v| (1..=max).contains(&v));
+    if !shape_ok(opts.width, MAX_WIDTH) || !shape_ok(opts.blocks, MAX_BLOCKS) {
+        return Err(Error::invalid(
+            "distil",
+            format!(
+                "the student's width must be within 1..={MAX_WIDTH} and its blocks within \
+                 1..={MAX_BLOCKS}, got {:?} and {:?}",
+                opts.width, opts.blocks
+            ),
         ));
     }
     let frames = frame_batches(teacher, set)?;
@@ -506,6 +522,15 @@ mod tests {
         )
         .unwrap_err();
         assert!(err.to_string().contains("two cameras"), "{err}");
+        for (width, blocks) in [(Some(0), None), (Some(1 << 20), None), (None, Some(1000))] {
+            let opts = DistilOptions {
+                width,
+                blocks,
+                ..DistilOptions::default()
+            };
+            let err = distil(&teacher, &set, &opts, &mut |_, _, _| {}).unwrap_err();
+            assert!(err.to_string().contains("width must be within"), "{err}");
+        }
         assert!("cosine".parse::<DistilLoss>().is_err());
         assert_eq!("log".parse::<DistilLoss>().unwrap(), DistilLoss::Log);
     }
