@@ -108,6 +108,12 @@ pub fn choose(
     if opts.export == ExportMode::Ensemble {
         return Ok((ensemble, keep("--export ensemble")));
     }
+    if opts.export == ExportMode::Auto && scorer.is_none() {
+        return Ok((
+            ensemble,
+            keep("no held-out frames to compare a student with"),
+        ));
+    }
     tracing::info!(
         members = ensemble.members().len(),
         epochs = opts.distil.epochs,
