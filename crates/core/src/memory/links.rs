@@ -11,7 +11,7 @@
 use ndarray::{Array2, ArrayView2};
 
 use super::MemoryConfig;
-use crate::distances::euclidean_distances;
+use crate::distances::{dot_t, row_sq_norms};
 use crate::lsa;
 use crate::motion::{MovingBox, iou};
 
@@ -86,24 +86,16 @@ impl CameraTracks {
                 b.predicted()
             })
             .collect();
-        // One product for both: the boxes now against themselves (the spacing) and against
-        // where the old ones are expected.
-        let mut both = ndarray::concatenate![ndarray::Axis(0), emb, old.view()];
-        both.slice_mut(ndarray::s![emb.nrows().., ..])
-            .scaled_add(frames as f32, vel);
-        let all = euclidean_distances(emb, both.view());
-        let n = emb.nrows();
-        let scale = 1.0 / spacing(all.slice(ndarray::s![.., ..n]));
-        let mut d = all.slice(ndarray::s![.., n..]).to_owned();
-        d.mapv_inplace(|x| x * scale);
-        let mut cost = d.clone();
-        for (mut row, b) in cost.rows_mut().into_iter().zip(view) {
-            for (c, p) in row.iter_mut().zip(&predicted) {
-                *c = 1.0 - iou(b, p) + cfg.link_weight * *c;
-            }
+        let d = expected_distances(emb, old.view(), vel.view(), frames);
+        let m = predicted.len();
+        let mut cost = Vec::with_capacity(d.len());
+        for (row, b) in d.chunks_exact(m).zip(view) {
+            let costs = row.iter().zip(&predicted);
+            cost.extend(costs.map(|(&d, p)| 1.0 - iou(b, p) + cfg.link_weight * d));
         }
+        let cost = Array2::from_shape_vec((view.len(), m), cost).expect("sized above");
         for (i, j) in lsa::assign(cost.view()) {
-            if d[(i, j)] <= cfg.link_gate && unforced(&cost, i, j, cfg.link_margin) {
+            if d[i * m + j] <= cfg.link_gate && unforced(&cost, i, j, cfg.link_margin) {
                 links[i] = Some(j);
             }
         }
@@ -175,29 +167,52 @@ impl CameraTracks {
     }
 }
 
-/// The median over the boxes of the distance to their nearest other box, from their distances
-/// `d` to each other (the typical spacing of people in the view; 1 with fewer than two boxes,
-/// never below 1e-6).
-fn spacing(d: ArrayView2<f32>) -> f32 {
-    let mut nearest: Vec<f32> = d
-        .rows()
-        .into_iter()
-        .enumerate()
-        .map(|(i, r)| {
-            r.iter()
-                .enumerate()
-                .filter(|&(j, v)| j != i && v.is_finite())
-                .map(|(_, &v)| v)
-                .fold(f32::INFINITY, f32::min)
-        })
-        .filter(|v| v.is_finite())
-        .collect();
+/// The distances (row major, `[now, old]`) from the embeddings `now` to where the `old` ones
+/// are expected `frames` frames later (moved by their velocities `vel`), in units of the
+/// camera's spacing: one matrix product, against the boxes now too (the spacing), with
+/// square roots taken only where a distance is used.
+fn expected_distances(
+    now: ArrayView2<f32>,
+    old: ArrayView2<f32>,
+    vel: ArrayView2<f32>,
+    frames: u64,
+) -> Vec<f32> {
+    let mut both = ndarray::concatenate![ndarray::Axis(0), now, old];
+    both.slice_mut(ndarray::s![now.nrows().., ..])
+        .scaled_add(frames as f32, &vel);
+    let gram = dot_t(now, both.view());
+    let norms = row_sq_norms(both.view());
+    let (norms, gram) = (
+        norms.as_slice().expect("freshly collected"),
+        gram.as_slice().expect("freshly made"),
+    );
+    let (n, width) = (now.nrows(), both.nrows());
+    let mut nearest = Vec::with_capacity(n);
+    let mut d = Vec::with_capacity(n * (width - n));
+    for (i, row) in gram.chunks_exact(width).enumerate() {
+        let sq = |(&g, &nj): (&f32, &f32)| (norms[i] + nj - 2.0 * g).max(0.0);
+        let others = row[..i].iter().zip(&norms[..i]);
+        let others = others.chain(row[i + 1..n].iter().zip(&norms[i + 1..n]));
+        nearest.push(others.map(sq).fold(f32::INFINITY, f32::min));
+        d.extend(row[n..].iter().zip(&norms[n..]).map(|x| sq(x).sqrt()));
+    }
+    let scale = 1.0 / spacing(nearest);
+    d.iter_mut().for_each(|v| *v *= scale);
+    d
+}
+
+/// The median over the boxes of the distance to their nearest other box, from each box's
+/// squared distance to its nearest (the typical spacing of people in the view; 1 with fewer
+/// than two boxes, never below 1e-6). The square root is taken of the median only (it keeps
+/// the order).
+fn spacing(nearest: Vec<f32>) -> f32 {
+    let mut nearest: Vec<f32> = nearest.into_iter().filter(|v| v.is_finite()).collect();
     if nearest.is_empty() {
         return 1.0;
     }
     let mid = nearest.len() / 2;
     nearest.select_nth_unstable_by(mid, f32::total_cmp);
-    nearest[mid].max(1e-6)
+    nearest[mid].sqrt().max(1e-6)
 }
 
 /// Whether `(i, j)` was not forced by the assignment: no other entry of its row or column
