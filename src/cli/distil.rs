@@ -9,7 +9,7 @@ use clap::Args;
 use crossview_model::{Ensemble, read_ensemble, write_ensemble_onnx};
 use crossview_train::distil::{DistilLoss, DistilOptions, distil, held_out_frames};
 use crossview_train::label_free::LabelFreeScorer;
-use crossview_train::prepare::{prepare, trained_filter};
+use crossview_train::prepare::prepare_as_trained;
 use crossview_train::validate::candidate_thresholds;
 
 use super::eval::check_scene;
@@ -71,17 +71,8 @@ pub fn run(a: DistilArgs) -> anyhow::Result<()> {
     let (teacher, mut meta) = read_ensemble(&a.teacher)?;
     let recording = crossview_data::recording::read_recording(&a.data)?;
     check_scene(&recording.scene, &meta)?;
-    let mut set = crossview_train::TrainingSet::from_recording(&recording.without_ids(), 1)?;
-    let fps = a
-        .fps
-        .or(recording.fps)
-        .or_else(|| meta.train_fps())
-        .unwrap_or(crossview_train::data::REFERENCE_FPS);
-    let filter = match a.all_boxes {
-        true => crossview_train::clean::BoxFilter::default(),
-        false => trained_filter(&meta).unwrap_or_default(),
-    };
-    prepare(&mut set, fps, &filter, 1)?;
+    let all_boxes = a.all_boxes.then(crossview_train::clean::BoxFilter::default);
+    let (set, _) = prepare_as_trained(&recording.without_ids(), &meta, a.fps, all_boxes)?;
     let opts = DistilOptions {
         epochs: a.epochs,
         frames_per_step: a.frames_per_step,

@@ -27,7 +27,7 @@ use crossview_core::offsets::{CameraSeries, OffsetConfig, frame_step};
 use crossview_data::Recording;
 use crossview_model::read_ensemble;
 use crossview_train::label_free::{LabelFreeScorer, LabelFreeScores};
-use crossview_train::prepare::{prepare, trained_filter};
+use crossview_train::prepare::prepare_as_trained;
 
 use super::eval::check_scene;
 use super::sync_check::{embed_series, profile_pairs};
@@ -156,12 +156,7 @@ pub fn run(args: GateArgs) -> anyhow::Result<()> {
 fn judge(path: &PathBuf, recording: &Recording, seed: u64) -> anyhow::Result<Judged> {
     let (ensemble, meta) = read_ensemble(path).with_context(|| format!("{}", path.display()))?;
     check_scene(&recording.scene, &meta)?;
-    let mut set = crossview_train::TrainingSet::from_recording(recording, 1)?;
-    let fps = recording
-        .fps
-        .or_else(|| meta.train_fps())
-        .unwrap_or(crossview_train::data::REFERENCE_FPS);
-    prepare(&mut set, fps, &trained_filter(&meta).unwrap_or_default(), 1)?;
+    let (set, _) = prepare_as_trained(recording, &meta, None, None)?;
     let scorer = LabelFreeScorer::new(set, vec![meta.threshold], seed)?;
     // One read of the file: its ensemble scores the key and embeds the fit's series.
     let mut encoder = ensemble;

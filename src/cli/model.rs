@@ -11,7 +11,7 @@ use crossview_model::metadata::KEY_SCENE;
 use crossview_model::{
     EncoderConfig, EncoderWeights, Ensemble, ModelMetadata, export, write_ensemble_onnx, write_onnx,
 };
-use crossview_train::prepare::{prepare, trained_filter};
+use crossview_train::prepare::prepare_as_trained;
 
 /// Model file tools.
 #[derive(Debug, Args)]
@@ -183,16 +183,7 @@ fn fit_calibration(
 ) -> anyhow::Result<()> {
     let recording = crossview_data::recording::read_recording(data)?;
     super::eval::check_scene(&recording.scene, meta)?;
-    let mut set = crossview_train::TrainingSet::from_recording(&recording, 1)?;
-    // The frames and boxes the model was trained on, so that time-shifted pairs lie as far
-    // apart in seconds as in training: the rate given, else the recording's header's, else
-    // the model's own, and its own training filter, when it records one.
-    let fps = fps
-        .or(recording.fps)
-        .or_else(|| meta.train_fps())
-        .unwrap_or(crossview_train::data::REFERENCE_FPS);
-    let filter = trained_filter(meta).unwrap_or_default();
-    let stats = prepare(&mut set, fps, &filter, 1)?;
+    let (set, stats) = prepare_as_trained(&recording, meta, fps, None)?;
     let mut encoder = ensemble.clone();
     let cal = crossview_train::calibrate::calibrate(&mut encoder, &set, seed)?;
     println!(

@@ -215,17 +215,15 @@ pub fn distil(
 
 /// The frames of `set` [`distil`] holds out (one in `every`; none for 0), as a set of their own.
 pub fn held_out_frames(set: &TrainingSet, every: usize) -> TrainingSet {
-    let mut held = set.clone();
-    let keep: Vec<bool> = (0..set.num_frames())
-        .map(|i| is_held_out(i, every))
-        .collect();
-    let mut k = keep.iter();
-    held.images
-        .retain(|_| *k.next().expect("one flag per frame"));
-    let mut k = keep.iter();
-    held.frame_ids
-        .retain(|_| *k.next().expect("one flag per frame"));
-    held
+    fn held<T: Clone>(v: &[T], every: usize) -> Vec<T> {
+        let kept = v.iter().enumerate().filter(|&(i, _)| is_held_out(i, every));
+        kept.map(|(_, x)| x.clone()).collect()
+    }
+    TrainingSet {
+        scene: set.scene.clone(),
+        frame_ids: held(&set.frame_ids, every),
+        images: held(&set.images, every),
+    }
 }
 
 /// Whether frame `i` of a set is held out when one in `every` is (none for 0).
@@ -344,7 +342,9 @@ fn step_loss<'f>(
     (total / k.max(1) as f64).map_err(ce)
 }
 
-/// The mean loss over the held-out frames (no gradient kept); `None` without any.
+/// The mean loss over the held-out frames; `None` without any. Each frame's loss is read out
+/// as it is computed, so no frame's graph outlives it (nothing here is differentiated). The
+/// sum and the division are [`step_loss`]'s, in the same order and precision.
 fn held_loss(
     model: &TrainModel,
     frames: &[Option<FrameBatch>],
@@ -354,8 +354,13 @@ fn held_loss(
     if held.is_empty() {
         return Ok(None);
     }
-    let loss = step_loss(model, held.iter().filter_map(|&i| frames[i].as_ref()), kind)?;
-    Ok(Some(loss.to_scalar::<f32>().map_err(ce)?))
+    let (mut sum, mut k) = (0f32, 0usize);
+    for f in held.iter().filter_map(|&i| frames[i].as_ref()) {
+        let loss = step_loss(model, std::iter::once(f), kind)?;
+        sum += loss.to_scalar::<f32>().map_err(ce)?;
+        k += 1;
+    }
+    Ok(Some(sum * (1.0 / k.max(1) as f64) as f32))
 }
 
 #[cfg(test)]
@@ -409,6 +414,17 @@ mod tests {
                 .collect(),
         )
         .unwrap()
+    }
+
+    #[test]
+    fn the_held_out_frames_are_one_in_every_and_keep_their_images() {
+        let set = walkers(3, 25);
+        let held = held_out_frames(&set, 10);
+        assert_eq!(held.frame_ids, vec![1, 11, 21]);
+        assert_eq!(held.images.len(), 3);
+        assert_eq!(held.images[1], set.images[11]);
+        assert_eq!(held.scene.cameras.len(), 3);
+        assert_eq!(held_out_frames(&set, 0).num_frames(), 0);
     }
 
     #[test]

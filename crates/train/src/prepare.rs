@@ -1,8 +1,7 @@
 //! How a recording is prepared for training — read ([`read_training_set`]), one frame in
 //! [`frame_step`](crate::data::frame_step) of it at the rate given or declared in its header,
 //! then the training-box filter — and what a model file records of that, so that whatever
-//! reads the recording again for the model (`crossview model calibrate`) prepares it the same
-//! way.
+//! reads a recording again for the model ([`prepare_as_trained`]) prepares it the same way.
 use std::path::PathBuf;
 
 use crossview_core::{Error, Result};
@@ -105,6 +104,28 @@ pub fn prepare(
 ) -> Result<FilterStats> {
     set.thin_to_reference_rate(fps, min_frames)?;
     Ok(filter.apply(set))
+}
+
+/// `recording`'s frames and boxes as the model `meta` was trained on — what a later step that
+/// fits or scores the model (`crossview model calibrate`, `model distil`, `model gate`) reads:
+/// thinned at `fps`, else the recording's declared rate, else the model's own training rate
+/// (so that time-shifted pairs lie as far apart in seconds as in training), then `filter`,
+/// else the model's own training filter when it records one. Also returns what the filter
+/// kept.
+pub fn prepare_as_trained(
+    recording: &Recording,
+    meta: &ModelMetadata,
+    fps: Option<f64>,
+    filter: Option<BoxFilter>,
+) -> Result<(TrainingSet, FilterStats)> {
+    let mut set = TrainingSet::from_recording(recording, 1)?;
+    let fps = fps
+        .or(recording.fps)
+        .or_else(|| meta.train_fps())
+        .unwrap_or(crate::data::REFERENCE_FPS);
+    let filter = filter.or_else(|| trained_filter(meta)).unwrap_or_default();
+    let stats = prepare(&mut set, fps, &filter, 1)?;
+    Ok((set, stats))
 }
 
 /// The training-box filter a model file says its training used
