@@ -63,6 +63,7 @@ pub struct DistilArgs {
 
 /// Runs `crossview model distil`.
 pub fn run(a: DistilArgs) -> anyhow::Result<()> {
+    super::compute::one_compute_thread_per_model();
     anyhow::ensure!(
         (0.0..=1.0).contains(&a.match_threshold),
         "--match-threshold must be within [0, 1], got {}",

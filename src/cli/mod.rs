@@ -2,6 +2,7 @@
 //! handler per subcommand. Kept thin: each handler calls into the library.
 use clap::{Parser, Subcommand};
 
+pub mod compute;
 pub mod demo;
 pub mod distil;
 pub mod eval;

@@ -385,12 +385,7 @@ fn population_options(args: &TrainArgs) -> PopulationOptions {
 
 /// Runs `crossview train`.
 pub fn run(args: TrainArgs) -> anyhow::Result<()> {
-    // One compute thread per member: candle reads RAYON_NUM_THREADS when it first sizes its
-    // thread pool. SAFETY: set before any thread of this process exists.
-    #[allow(unsafe_code)]
-    unsafe {
-        std::env::set_var("RAYON_NUM_THREADS", "1")
-    };
+    super::compute::one_compute_thread_per_model();
     if !(0.0..=1.0).contains(&args.threshold)
         || !(0.0..=1.0).contains(&args.alpha)
         || !(0.0..=1.0).contains(&args.match_threshold)
