@@ -205,8 +205,8 @@ fn expected_distances(
 /// squared distance to its nearest (the typical spacing of people in the view; 1 with fewer
 /// than two boxes, never below 1e-6). The square root is taken of the median only (it keeps
 /// the order).
-fn spacing(nearest: Vec<f32>) -> f32 {
-    let mut nearest: Vec<f32> = nearest.into_iter().filter(|v| v.is_finite()).collect();
+fn spacing(mut nearest: Vec<f32>) -> f32 {
+    nearest.retain(|v| v.is_finite());
     if nearest.is_empty() {
         return 1.0;
     }
