@@ -10,7 +10,6 @@
 //! and after the first fenced result; every camera's after the move; the frame the fence came
 //! up.
 use std::collections::BTreeMap;
-use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::Context;
@@ -18,6 +17,7 @@ use clap::Parser;
 use crossview::demo::score::pair_records;
 use crossview_api::convert::identity_from_pb;
 use crossview_api::pb;
+use crossview_bench::{MovedCamera, push_frame};
 use crossview_core::identity::Identity;
 use crossview_data::read_recording;
 use crossview_eval::compute_metrics;
@@ -25,20 +25,13 @@ use crossview_eval::driver::frame_ids;
 use crossview_serve::{ModelSpec, ServeConfig};
 use futures::StreamExt;
 use rand::SeedableRng;
-use rand::seq::SliceRandom;
 
+/// What a client of the real server receives when one camera moves (see the file's header).
 #[derive(Parser)]
 struct Args {
-    #[arg(long)]
-    model: PathBuf,
-    #[arg(long)]
-    data: PathBuf,
-    /// The camera that moves (left out of the score).
-    #[arg(long)]
-    camera: String,
-    /// First frame id with the camera moved.
-    #[arg(long)]
-    moved_at: u64,
+    /// The model, the recording and the camera that moves (left out of the score).
+    #[command(flatten)]
+    run: MovedCamera,
     #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
     fence: bool,
     /// Send the camera's batches empty (the reference: the camera silent).
@@ -55,10 +48,16 @@ struct Args {
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]
 async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let rec = read_recording(&args.data)?;
+    let MovedCamera {
+        model,
+        data,
+        camera,
+        moved_at,
+    } = &args.run;
+    let rec = read_recording(data)?;
     let names: Vec<String> = rec.scene.cameras.iter().map(|c| c.name.clone()).collect();
-    let moved = rec.scene.camera_index(&args.camera)?;
-    let spec = ModelSpec::parse(&format!("{}={}", rec.scene.name, args.model.display()))?;
+    let moved = rec.scene.camera_index(camera)?;
+    let spec = ModelSpec::parse(&format!("{}={}", rec.scene.name, model.display()))?;
     let (fence, interval) = (args.fence, Duration::from_millis(args.watch_interval_ms));
     let server = crossview_testing::start_with(vec![spec], move |c: &mut ServeConfig| {
         c.sync_timeout = Duration::from_secs(5);
@@ -72,24 +71,10 @@ async fn main() -> anyhow::Result<()> {
     let url = server.url(&format!("/v1/scenes/{}/batches", rec.scene.name));
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
     let pace = Duration::from_secs_f64(1.0 / args.rate.max(0.1));
+    let silent = args.silent.then_some(moved);
     for frame in &rec.frames {
-        let mut order: Vec<usize> = (0..names.len()).collect();
-        order.shuffle(&mut rng);
-        for c in order {
-            let mut detections = frame.views[c].clone().unwrap_or_default();
-            if args.silent && c == moved {
-                detections.clear();
-            }
-            detections.iter_mut().for_each(|d| d.id = None);
-            let batch = crossview_core::Batch {
-                camera: names[c].clone(),
-                frame_id: frame.frame_id,
-                time: None,
-                detections,
-            };
-            let r = http.post(&url).json(&batch).send().await?;
-            anyhow::ensure!(r.status().as_u16() == 202, "{}", r.text().await?);
-        }
+        let refused = push_frame(&http, &url, &names, frame, &mut rng, silent).await?;
+        anyhow::ensure!(refused.is_empty(), "refused: {refused:?}");
         tokio::time::sleep(pace).await;
     }
     let mut got: BTreeMap<u64, pb::FrameResult> = BTreeMap::new();
@@ -102,7 +87,7 @@ async fn main() -> anyhow::Result<()> {
     }
     let fenced_from = got
         .values()
-        .find(|r| r.fenced_cameras.contains(&args.camera))
+        .find(|r| r.fenced_cameras.contains(camera))
         .map(|r| r.frame_id);
     let (mut before, mut after, mut fenced) = (Vec::new(), Vec::new(), Vec::new());
     // Every camera's pairs, the moved one's included, after the move (what the whole scene's
@@ -111,7 +96,7 @@ async fn main() -> anyhow::Result<()> {
     for frame in &rec.frames {
         let r = &got[&frame.frame_id];
         let mut truth = frame_ids(&rec.scene, frame)?;
-        if frame.frame_id >= args.moved_at {
+        if frame.frame_id >= *moved_at {
             let all: Vec<Identity> = r.identities.iter().map(identity_from_pb).collect();
             whole.extend(pair_records(frame.frame_id, &names, &truth, &all)?);
         }
@@ -127,7 +112,7 @@ async fn main() -> anyhow::Result<()> {
             })
             .collect();
         let records = pair_records(frame.frame_id, &names, &truth, &served)?;
-        if frame.frame_id < args.moved_at {
+        if frame.frame_id < *moved_at {
             before.extend(records);
         } else {
             if fenced_from.is_some_and(|f| frame.frame_id >= f) {

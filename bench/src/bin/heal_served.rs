@@ -19,6 +19,7 @@ use anyhow::Context;
 use clap::Parser;
 use crossview::demo::score::{TruthIds, pair_records};
 use crossview_api::convert::identity_from_pb;
+use crossview_bench::{MovedCamera, push_frame};
 use crossview_core::identity::Identity;
 use crossview_data::read_recording;
 use crossview_eval::compute_metrics;
@@ -26,20 +27,13 @@ use crossview_serve::config::SceneDecl;
 use crossview_serve::{HealConfig, ModelSpec, RecordConfig, ServeConfig};
 use futures::StreamExt;
 use rand::SeedableRng;
-use rand::seq::SliceRandom;
 
+/// A moved camera healed by the real server, as its client lives it (see the file's header).
 #[derive(Parser)]
 struct Args {
-    #[arg(long)]
-    model: PathBuf,
-    #[arg(long)]
-    data: PathBuf,
-    /// The camera that moves.
-    #[arg(long)]
-    camera: String,
-    /// First frame id with the camera moved.
-    #[arg(long)]
-    moved_at: u64,
+    /// The model, the recording and the camera that moves.
+    #[command(flatten)]
+    run: MovedCamera,
     /// The `crossview` executable the server retrains with.
     #[arg(long)]
     program: PathBuf,
@@ -67,9 +61,9 @@ type Seen = BTreeMap<u64, (crossview_api::pb::FrameResult, Instant)>;
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]
 async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let rec = read_recording(&args.data)?;
+    let rec = read_recording(&args.run.data)?;
     let names: Vec<String> = rec.scene.cameras.iter().map(|c| c.name.clone()).collect();
-    let spec = ModelSpec::parse(&format!("{}={}", rec.scene.name, args.model.display()))?;
+    let spec = ModelSpec::parse(&format!("{}={}", rec.scene.name, args.run.model.display()))?;
     let decl = SceneDecl {
         spec: rec.scene.clone(),
         fps: Some(args.rate),
@@ -110,20 +104,9 @@ async fn main() -> anyhow::Result<()> {
     let mut refused = 0usize;
     for (k, frame) in rec.frames.iter().enumerate() {
         tokio::time::sleep_until((start + period * k as u32).into()).await;
-        let mut order: Vec<usize> = (0..names.len()).collect();
-        order.shuffle(&mut rng);
-        for c in order {
-            let mut detections = frame.views[c].clone().unwrap_or_default();
-            detections.iter_mut().for_each(|d| d.id = None);
-            let batch = crossview_core::Batch {
-                camera: names[c].clone(),
-                frame_id: frame.frame_id,
-                time: None,
-                detections,
-            };
-            let r = http.post(&url).json(&batch).send().await?;
-            refused += usize::from(r.status().as_u16() != 202);
-        }
+        refused += push_frame(&http, &url, &names, frame, &mut rng, None)
+            .await?
+            .len();
         pushed.insert(frame.frame_id, Instant::now());
         if k % 10 == 0 {
             let d = server
@@ -179,7 +162,7 @@ fn score(
     retraining: &BTreeMap<u64, bool>,
     refused: usize,
 ) -> anyhow::Result<serde_json::Value> {
-    let moved = rec.scene.camera_index(&args.camera)?;
+    let (moved, moved_at) = (rec.scene.camera_index(&args.run.camera)?, args.run.moved_at);
     let first_version = seen.values().next().map(|(r, _)| r.model_version.clone());
     let swapped_at = seen
         .values()
@@ -187,7 +170,7 @@ fn score(
         .map(|(r, _)| r.frame_id);
     let fenced_from = seen
         .values()
-        .find(|(r, _)| r.fenced_cameras.contains(&args.camera))
+        .find(|(r, _)| r.fenced_cameras.contains(&args.run.camera))
         .map(|(r, _)| r.frame_id);
     let (mut before, mut between, mut after) = (Vec::new(), Vec::new(), Vec::new());
     let (mut idle_lat, mut busy_lat) = (Vec::new(), Vec::new());
@@ -205,7 +188,7 @@ fn score(
         );
         running = retraining.get(&frame.frame_id).copied().unwrap_or(running);
         let latency = pushed[&frame.frame_id].elapsed().as_secs_f64() - at.elapsed().as_secs_f64();
-        if frame.frame_id < args.moved_at {
+        if frame.frame_id < moved_at {
             idle_lat.push(latency * 1000.0);
         } else if running {
             busy_lat.push(latency * 1000.0);
@@ -213,7 +196,7 @@ fn score(
         let truth = truth_ids.of_frame(frame);
         let all: Vec<Identity> = r.identities.iter().map(identity_from_pb).collect();
         let records = pair_records(frame.frame_id, names, &truth, &all)?;
-        if frame.frame_id < args.moved_at {
+        if frame.frame_id < moved_at {
             before.extend(records);
         } else if swapped_at.is_none_or(|s| frame.frame_id < s) {
             between.extend(records);
@@ -230,9 +213,9 @@ fn score(
         v.get(((v.len() as f64 - 1.0) * q).round().max(0.0) as usize)
             .copied()
     };
-    let seconds = |f: Option<u64>| f.map(|f| (f.saturating_sub(args.moved_at)) as f64 / args.rate);
+    let seconds = |f: Option<u64>| f.map(|f| (f.saturating_sub(moved_at)) as f64 / args.rate);
     Ok(serde_json::json!({
-        "moved": moved, "moved_at": args.moved_at,
+        "moved": moved, "moved_at": moved_at,
         "fenced_after_s": seconds(fenced_from), "swapped_after_s": seconds(swapped_at),
         "before_move": metrics(&before), "moved_before_swap": metrics(&between),
         "after_swap": metrics(&after),
