@@ -30,10 +30,10 @@ pub struct DistilArgs {
     /// Passes over the recording's frames.
     #[arg(long, default_value_t = DistilOptions::default().epochs)]
     pub epochs: usize,
-    /// Student width (default: the teacher's member width).
+    /// Student width (default: one and a half times the teacher's member width).
     #[arg(long)]
     pub width: Option<usize>,
-    /// Student residual blocks (default: twice the teacher's members').
+    /// Student residual blocks (default: the teacher's members').
     #[arg(long)]
     pub blocks: Option<usize>,
     /// Adam learning rate.

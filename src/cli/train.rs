@@ -218,7 +218,7 @@ pub struct TrainArgs {
     /// [ours] The student's passes over the training frames.
     #[arg(long, default_value_t = DistilOptions::default().epochs)]
     pub student_epochs: usize,
-    /// [ours] The student's width (default: the members' width; twice their depth).
+    /// [ours] The student's width (default: one and a half times the members'; their depth).
     #[arg(long)]
     pub student_width: Option<usize>,
     /// [ours] Also write every finalist of the population as its own model file in this

@@ -329,11 +329,12 @@ fn distil_writes_one_calibrated_encoder_that_records_its_teacher() {
     let st = distil(&e, &rec, &["--epochs", "8"]);
     assert!(st.status.success(), "{st:?}");
     let stdout = String::from_utf8_lossy(&st.stdout);
-    assert!(stdout.contains("one member of width 16"), "{stdout}");
+    // The default shape: one and a half times the members' width, their depth.
+    assert!(stdout.contains("one member of width 24"), "{stdout}");
     // 40 frames hold out 4: too few for the label-free scores, and it says so.
     assert!(stdout.contains("cannot be scored"), "{stdout}");
     let mut s = OnnxEncoder::load(&out).unwrap();
-    assert_eq!(s.dim(), 16);
+    assert_eq!(s.dim(), 24);
     let meta = s.metadata().clone();
     assert!(meta.calibration.is_some(), "the student is calibrated");
     let record: serde_json::Value =
@@ -344,7 +345,7 @@ fn distil_writes_one_calibrated_encoder_that_records_its_teacher() {
     assert!(!meta.extra.contains_key("crossview.ensemble"));
     assert_eq!(
         s.embed(&[[0.1, 0.1, 0.3, 0.6]], &[1]).unwrap().dim(),
-        (1, 16)
+        (1, 24)
     );
 
     // Bad input: named, nothing written.

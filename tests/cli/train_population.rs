@@ -216,16 +216,17 @@ fn the_student_is_written_when_asked_or_when_it_scores_within_the_tolerance() {
         ];
         train_ok(&data, out, &args.concat())
     };
-    // Asked for: one encoder of the members' width, with both label-free scores recorded.
+    // Asked for: one encoder one and a half times the members' width (the default shape), with
+    // both label-free scores recorded.
     let out = dir.path().join("student.onnx");
     let st = run("student", &out);
     assert!(String::from_utf8_lossy(&st.stdout).contains("exported the student"));
     let (model, meta) = read_ensemble(&out).unwrap();
-    assert_eq!((model.members().len(), model.width()), (1, 16));
+    assert_eq!((model.members().len(), model.width()), (1, 24));
     assert!(meta.calibration.is_some(), "the student is calibrated");
     let export = export_record(&meta);
     assert_eq!(export["exported"], "student", "{export}");
-    assert_eq!(export["student"]["width"], 16);
+    assert_eq!(export["student"]["width"], 24);
     for side in ["ensemble_scores", "student_scores"] {
         let acc = export[side]["expected_acc"].as_f64().unwrap();
         assert!((0.0..=1.0).contains(&acc), "{export}");
@@ -240,7 +241,7 @@ fn the_student_is_written_when_asked_or_when_it_scores_within_the_tolerance() {
         .iter()
         .all(|w| score("student_scores", w) >= score("ensemble_scores", w) - 0.003);
     let want = if within {
-        ("student", 16)
+        ("student", 24)
     } else {
         ("ensemble", 32)
     };

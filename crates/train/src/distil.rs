@@ -29,11 +29,12 @@ pub struct DistilOptions {
     pub frames_per_step: usize,
     /// Adam learning rate (cosine decay to a hundredth over the epochs).
     pub lr: f64,
-    /// Student width; `None`: the teacher's member width. A student of its members' shape
-    /// starts from the first (best) member, any other from a fresh encoder.
+    /// Student width; `None`: one and a half times the teacher's member width (96 for
+    /// width-64 members: the narrowest width within 0.3 ACC of its teacher for each of five
+    /// teachers on the WILDTRACK training frames; BENCHMARKS.md, "One student"). A student of
+    /// its members' shape starts from the first (best) member, any other from a fresh encoder.
     pub width: Option<usize>,
-    /// Student residual blocks; `None`: twice the teacher's members' (depth costs a width-64
-    /// encoder less than width; BENCHMARKS.md, "One student").
+    /// Student residual blocks; `None`: the teacher's members'.
     #[serde(default)]
     pub blocks: Option<usize>,
     /// One frame in this many is held out to choose the epoch (0: none, the last is kept).
@@ -236,8 +237,8 @@ fn is_held_out(i: usize, every: usize) -> bool {
 fn student(teacher: &Ensemble, opts: &DistilOptions) -> Result<TrainModel> {
     let first = &teacher.members()[0];
     let config = EncoderConfig {
-        width: opts.width.unwrap_or(first.config.width),
-        blocks: opts.blocks.unwrap_or(2 * first.config.blocks),
+        width: opts.width.unwrap_or(first.config.width * 3 / 2),
+        blocks: opts.blocks.unwrap_or(first.config.blocks),
         ..first.config
     };
     if config == first.config {
@@ -434,6 +435,7 @@ mod tests {
         let opts = DistilOptions {
             epochs: 40,
             lr: 3e-3,
+            width: Some(16),
             blocks: Some(1),
             holdout_every: 5,
             ..DistilOptions::default()
