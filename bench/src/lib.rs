@@ -33,7 +33,7 @@ pub async fn push_frame(
     frame: &Frame,
     rng: &mut impl Rng,
     silent: Option<usize>,
-) -> anyhow::Result<Vec<String>> {
+) -> reqwest::Result<Vec<String>> {
     let mut order: Vec<usize> = (0..names.len()).collect();
     order.shuffle(rng);
     let mut refused = Vec::new();
