@@ -30,9 +30,10 @@ pub struct DistilOptions {
     /// Adam learning rate (cosine decay to a hundredth over the epochs).
     pub lr: f64,
     /// Student width; `None`: one and a half times the teacher's member width (96 for
-    /// width-64 members: the narrowest width within 0.3 ACC of its teacher for each of five
-    /// teachers on the WILDTRACK training frames; BENCHMARKS.md, "One student"). A student of
-    /// its members' shape starts from the first (best) member, any other from a fresh encoder.
+    /// width-64 members: within 0.3 ACC of its teacher for each of five teachers on the
+    /// WILDTRACK training frames, where width 64 with twice the depth was for three;
+    /// BENCHMARKS.md, "One student"). A student of its members' shape starts from the first
+    /// (best) member, any other from a fresh encoder.
     pub width: Option<usize>,
     /// Student residual blocks; `None`: the teacher's members'.
     #[serde(default)]
