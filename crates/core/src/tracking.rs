@@ -19,6 +19,8 @@
 //! live at once (the longest unseen go first). Ages count the frames given to
 //! [`Tracker::update`], not frame ids, so a gap in the ids, a restart of the ids (a scene whose
 //! cameras restarted) or a partial frame neither resets nor ages the tracks by itself.
+use std::borrow::Cow;
+
 use ndarray::Array2;
 
 use crate::distances::euclidean_distances;
@@ -86,12 +88,16 @@ impl Track {
 
     /// Where the track is expected this frame: its centroid moved on by its velocity.
     fn predicted(&self) -> Vec<f32> {
+        let mut out = Vec::with_capacity(self.centroid.len());
+        self.predict_into(&mut out);
+        out
+    }
+
+    /// [`Track::predicted`], appended to `out`.
+    fn predict_into(&self, out: &mut Vec<f32>) {
         let k = (self.unseen + 1) as f32;
-        self.centroid
-            .iter()
-            .zip(&self.velocity)
-            .map(|(c, v)| c + k * v)
-            .collect()
+        let moved = self.centroid.iter().zip(&self.velocity);
+        out.extend(moved.map(|(c, v)| c + k * v));
     }
 }
 
@@ -233,10 +239,16 @@ impl Tracker {
             return out;
         }
         let dim = self.tracks[0].centroid.len();
-        let ident = Array2::from_shape_fn((rows.len(), dim), |(r, k)| {
-            centroids[rows[r]].as_ref().map_or(0.0, |c| c[k])
-        });
-        let predicted: Vec<f32> = self.tracks.iter().flat_map(Track::predicted).collect();
+        let mut ident = Vec::with_capacity(rows.len() * dim);
+        for &r in &rows {
+            ident.extend_from_slice(centroids[r].as_deref().unwrap_or_default());
+        }
+        let mut predicted = Vec::with_capacity(self.tracks.len() * dim);
+        for t in &self.tracks {
+            t.predict_into(&mut predicted);
+        }
+        let ident = Array2::from_shape_vec((rows.len(), dim), ident)
+            .expect("every identity kept has a centroid of the frame's width");
         let predicted = Array2::from_shape_vec((self.tracks.len(), dim), predicted)
             .expect("every track has the frame's embedding width");
         // All distances at once through the matrix-product kernel.
@@ -312,7 +324,12 @@ fn centroid(id: &Identity, embeddings: &FrameEmbeddings) -> Option<Vec<f32>> {
             continue;
         }
         let row = view.row(i);
-        if row.iter().any(|v| !v.is_finite()) {
+        // The rows of a frame's embeddings are contiguous: plain slices and a check without
+        // an early exit, so both passes compile to vector code.
+        let row = row
+            .as_slice()
+            .map_or_else(|| row.to_vec().into(), Cow::Borrowed);
+        if !row.iter().fold(true, |ok, v| ok & v.is_finite()) {
             continue;
         }
         for (s, v) in sum.iter_mut().zip(row.iter()) {
@@ -320,7 +337,11 @@ fn centroid(id: &Identity, embeddings: &FrameEmbeddings) -> Option<Vec<f32>> {
         }
         n += 1;
     }
-    (n > 0).then(|| sum.into_iter().map(|s| s / n as f32).collect())
+    let per = n as f32;
+    (n > 0).then(|| {
+        sum.iter_mut().for_each(|s| *s /= per);
+        sum
+    })
 }
 
 /// Most centroids the frame's scale is taken from (evenly spread over the frame's
@@ -339,7 +360,9 @@ fn median_distance(centroids: &[Option<Vec<f32>>]) -> f32 {
         return f32::INFINITY;
     }
     let dim = cs[0].len();
-    let m = Array2::from_shape_fn((n, dim), |(r, k)| cs[r][k]);
+    let mut flat = Vec::with_capacity(n * dim);
+    cs.iter().for_each(|c| flat.extend_from_slice(c));
+    let m = Array2::from_shape_vec((n, dim), flat).expect("every centroid has the frame's width");
     let all = euclidean_distances(m.view(), m.view());
     let mut d = Vec::with_capacity(n * (n - 1) / 2);
     for i in 0..n {
