@@ -239,16 +239,15 @@ impl Tracker {
             return out;
         }
         let dim = self.tracks[0].centroid.len();
-        let mut ident = Vec::with_capacity(rows.len() * dim);
-        for &r in &rows {
-            ident.extend_from_slice(centroids[r].as_deref().unwrap_or_default());
-        }
+        let ident = stack(
+            rows.iter()
+                .map(|&r| centroids[r].as_deref().unwrap_or_default()),
+            dim,
+        );
         let mut predicted = Vec::with_capacity(self.tracks.len() * dim);
         for t in &self.tracks {
             t.predict_into(&mut predicted);
         }
-        let ident = Array2::from_shape_vec((rows.len(), dim), ident)
-            .expect("every identity kept has a centroid of the frame's width");
         let predicted = Array2::from_shape_vec((self.tracks.len(), dim), predicted)
             .expect("every track has the frame's embedding width");
         // All distances at once through the matrix-product kernel.
@@ -344,6 +343,15 @@ fn centroid(id: &Identity, embeddings: &FrameEmbeddings) -> Option<Vec<f32>> {
     })
 }
 
+/// `rows` (each `dim` long: centroids of the frame's embedding width) stacked into one matrix
+/// by slice copies.
+fn stack<'a>(rows: impl ExactSizeIterator<Item = &'a [f32]>, dim: usize) -> Array2<f32> {
+    let n = rows.len();
+    let mut flat = Vec::with_capacity(n * dim);
+    rows.for_each(|r| flat.extend_from_slice(r));
+    Array2::from_shape_vec((n, dim), flat).expect("every centroid has the frame's width")
+}
+
 /// Most centroids the frame's scale is taken from (evenly spread over the frame's
 /// identities), so it costs at most ~2,000 distances however crowded the frame is.
 const SCALE_SAMPLE: usize = 64;
@@ -360,9 +368,7 @@ fn median_distance(centroids: &[Option<Vec<f32>>]) -> f32 {
         return f32::INFINITY;
     }
     let dim = cs[0].len();
-    let mut flat = Vec::with_capacity(n * dim);
-    cs.iter().for_each(|c| flat.extend_from_slice(c));
-    let m = Array2::from_shape_vec((n, dim), flat).expect("every centroid has the frame's width");
+    let m = stack(cs.iter().map(|c| c.as_slice()), dim);
     let all = euclidean_distances(m.view(), m.view());
     let mut d = Vec::with_capacity(n * (n - 1) / 2);
     for i in 0..n {
