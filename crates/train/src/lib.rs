@@ -5,7 +5,8 @@
 //! - [`prepare`]: a recording thinned and filtered as training uses it, and what a model
 //!   file records of that.
 //! - [`sampler`]: anchor/positive/negative triplets.
-//! - [`model`]: the candle encoder + decoder, convertible to [`crossview_model::EncoderWeights`].
+//! - [`model`]: the candle encoder + decoder, convertible to [`crossview_model::EncoderWeights`]
+//!   (`ops`: its hottest element-wise steps as single operations with one-pass gradients).
 //! - [`losses`]: synchronization, re-projection and edge losses, batched over triplets
 //!   (`hinge`: their triplet hinge over many pairs at once).
 //! - `transport`: **[ours]** the soft assignment that may replace the Hungarian pairs of the
@@ -35,6 +36,7 @@ pub mod label_free;
 pub mod losses;
 pub mod member;
 pub mod model;
+mod ops;
 pub mod population;
 pub mod prepare;
 pub mod pseudo;
