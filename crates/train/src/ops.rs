@@ -4,8 +4,8 @@
 //!   block ending); composed from candle's operations it took eight tensors forward and about
 //!   twice that backward, each a fresh buffer and a pass over memory.
 //! - [`add_bias`]: `x + b` for each row, whose gradient for `b` sums the rows in one
-//!   contiguous pass (candle's own reduction over the first axis walks it column by column:
-//!   about 50× slower here).
+//!   contiguous pass (candle's reduction over the first axis, which `broadcast_add`'s gradient
+//!   uses, took about 50× its reduction over the last on a `[500, 64]` gradient).
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, Layout, Shape, Tensor};
 
 /// `ReLU(LayerNorm(x))` over the last axis of `x` (float32), without scale or shift.
