@@ -6,7 +6,7 @@
 //!   file records of that.
 //! - [`sampler`]: anchor/positive/negative triplets.
 //! - [`model`]: the candle encoder + decoder, convertible to [`crossview_model::EncoderWeights`]
-//!   (`ops`: its hottest element-wise steps as single operations with one-pass gradients).
+//!   (`ops`: each residual block and each bias add as one operation with a one-pass gradient).
 //! - [`losses`]: synchronization, re-projection and edge losses, batched over triplets
 //!   (`hinge`: their triplet hinge over many pairs at once).
 //! - `transport`: **[ours]** the soft assignment that may replace the Hungarian pairs of the

@@ -365,6 +365,7 @@ fn check_config(c: &EncoderConfig, num_cameras: usize) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::ops::tests::{assert_within_share, composed_block};
 
     /// The scalar definition the vector version must follow.
     fn scalar(b: &[f32], f: usize, bx: &[f32; 4]) -> Vec<f32> {
@@ -435,27 +436,14 @@ mod tests {
             .as_tensor()
             .index_select(&ids, 0)
             .unwrap();
-        let linear = |l: &TrainLinear, x: &Tensor| {
-            x.matmul(l.weight_t.as_tensor())
-                .unwrap()
-                .broadcast_add(l.bias.as_tensor())
-                .unwrap()
-        };
         let mut x = Tensor::cat(&[&gamma, &cam], 1).unwrap();
         if let Some(p) = &m.input_proj {
-            x = linear(p, &x);
+            let product = x.matmul(p.weight_t.as_tensor()).unwrap();
+            x = product.broadcast_add(p.bias.as_tensor()).unwrap();
         }
         for b in &m.blocks {
-            let pre = (linear(b, &x) + &x).unwrap();
-            let mean = pre.mean_keepdim(candle_core::D::Minus1).unwrap();
-            let centred = pre.broadcast_sub(&mean).unwrap();
-            let var = centred
-                .sqr()
-                .unwrap()
-                .mean_keepdim(candle_core::D::Minus1)
-                .unwrap();
-            let sd = (var + f64::from(LAYER_NORM_EPS)).unwrap().sqrt().unwrap();
-            x = centred.broadcast_div(&sd).unwrap().relu().unwrap();
+            let (w, bias) = (b.weight_t.as_tensor(), b.bias.as_tensor());
+            x = composed_block(&x, w, bias, LAYER_NORM_EPS).unwrap();
         }
         x
     }
@@ -488,20 +476,8 @@ mod tests {
                     gf.get(v.as_tensor()).unwrap(),
                     gc.get(v.as_tensor()).unwrap(),
                 );
-                let scale = c
-                    .abs()
-                    .unwrap()
-                    .max_all()
-                    .unwrap()
-                    .to_scalar::<f32>()
-                    .unwrap();
-                let diff = (f - c).unwrap().abs().unwrap().max_all().unwrap();
-                let diff = diff.to_scalar::<f32>().unwrap();
                 // Rounding only: 3e-7 of the largest gradient seen.
-                assert!(
-                    diff <= 1e-5 * scale.max(1.0),
-                    "{config:?} {name}: {diff} of {scale}"
-                );
+                assert_within_share(f, c, 1e-5, &format!("{config:?} {name}"));
             }
         }
     }

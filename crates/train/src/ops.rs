@@ -268,7 +268,7 @@ impl CustomOp1 for NormaliseReluGrad {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use candle_core::{D, Device, Var};
 
@@ -316,9 +316,24 @@ mod tests {
         d.max(0).unwrap().to_scalar::<f32>().unwrap()
     }
 
-    /// A block composed from candle's operations, as the encoder was before [`residual_block`].
-    fn composed_block(x: &Tensor, w: &Tensor, b: &Tensor) -> candle_core::Result<Tensor> {
-        reference(&(x.matmul(w)?.broadcast_add(b)? + x)?, 1e-5)
+    /// A block composed from candle's operations, as the encoder was before [`residual_block`]
+    /// (also the reference of `model`'s whole-encoder test).
+    pub(crate) fn composed_block(
+        x: &Tensor,
+        w: &Tensor,
+        b: &Tensor,
+        eps: f32,
+    ) -> candle_core::Result<Tensor> {
+        reference(&(x.matmul(w)?.broadcast_add(b)? + x)?, eps)
+    }
+
+    /// Asserts that every element of `got` is within `share` of `want`'s largest absolute value
+    /// (taken as at least 1) of `want`'s: rounding, not a different computation.
+    pub(crate) fn assert_within_share(got: &Tensor, want: &Tensor, share: f32, what: &str) {
+        let scale = want.abs().unwrap().max_all().unwrap();
+        let scale = scale.to_scalar::<f32>().unwrap();
+        let diff = max_diff(got, want);
+        assert!(diff <= share * scale.max(1.0), "{what}: {diff} of {scale}");
     }
 
     #[test]
@@ -333,7 +348,7 @@ mod tests {
             let b = Var::from_tensor(&Tensor::randn(0f32, 1.0, width, &dev).unwrap()).unwrap();
             let up = Tensor::randn(0f32, 1.0, (rows, width), &dev).unwrap();
             let fused = residual_block(x.as_tensor(), w.as_tensor(), b.as_tensor(), 1e-5).unwrap();
-            let plain = composed_block(x.as_tensor(), w.as_tensor(), b.as_tensor()).unwrap();
+            let plain = composed_block(x.as_tensor(), w.as_tensor(), b.as_tensor(), 1e-5).unwrap();
             assert!(max_diff(&fused, &plain) < 1e-5, "{rows}x{width} forward");
             let gf = (fused * &up)
                 .unwrap()
@@ -352,18 +367,7 @@ mod tests {
                     gf.get(v.as_tensor()).unwrap(),
                     gp.get(v.as_tensor()).unwrap(),
                 );
-                let scale = p
-                    .abs()
-                    .unwrap()
-                    .max_all()
-                    .unwrap()
-                    .to_scalar::<f32>()
-                    .unwrap();
-                let diff = max_diff(f, p);
-                assert!(
-                    diff <= 1e-5 * scale.max(1.0),
-                    "{rows}x{width} d{name}: {diff}"
-                );
+                assert_within_share(f, p, 1e-5, &format!("{rows}x{width} d{name}"));
             }
         }
     }
