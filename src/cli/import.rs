@@ -5,8 +5,8 @@ use std::path::PathBuf;
 use anyhow::{Context, bail};
 use clap::{Args, Subcommand, ValueEnum};
 
-use crossview_data::wildtrack;
 use crossview_data::{Part, Recording, read_recording, split_bounds, write_recording};
+use crossview_data::{mvor, wildtrack};
 
 /// `crossview import <dataset>`: convert a dataset into a recording.
 #[derive(Debug, Args)]
@@ -22,6 +22,21 @@ pub enum ImportSource {
     WildtrackGt(WildtrackGtArgs),
     /// WILDTRACK detector boxes from a Self-MVA detections JSON (e.g. `detections_train.json`).
     WildtrackDetections(WildtrackDetectionsArgs),
+    /// MVOR ground truth from `camma_mvor_2018_v2.json` (boxes carry person ids; 732 frames).
+    MvorGt(FileArgs),
+    /// MVOR detector boxes from Self-MVA's `data/MVOR/sequence1/output/detections_train.json`.
+    MvorDetections(FileArgs),
+}
+
+/// Options of an importer that reads one file.
+#[derive(Debug, Args)]
+pub struct FileArgs {
+    /// The dataset's file.
+    #[arg(long)]
+    pub file: PathBuf,
+    /// Output recording (`-` = stdout).
+    #[arg(long)]
+    pub out: PathBuf,
 }
 
 /// Options of `import wildtrack-gt`.
@@ -136,6 +151,17 @@ pub fn run(args: ImportArgs) -> anyhow::Result<()> {
             })?;
             (imported, a.out)
         }
+        ImportSource::MvorGt(a) => {
+            let imported = mvor::import_ground_truth(&a.file).with_context(|| {
+                format!("importing MVOR ground truth from {}", a.file.display())
+            })?;
+            (imported, a.out)
+        }
+        ImportSource::MvorDetections(a) => {
+            let imported = mvor::import_detections(&a.file)
+                .with_context(|| format!("importing MVOR detections from {}", a.file.display()))?;
+            (imported, a.out)
+        }
     };
     write_recording(&out, &imported.recording)
         .with_context(|| format!("writing {}", out.display()))?;
@@ -143,7 +169,7 @@ pub fn run(args: ImportArgs) -> anyhow::Result<()> {
         &imported.recording,
         &out,
         &format!(
-            "; clipped {} boxes, dropped {} empty",
+            "; clipped {} boxes, dropped {} (empty after clipping, or linked to no person)",
             imported.clipped, imported.dropped
         ),
     );
