@@ -10,12 +10,10 @@ use std::path::{Path, PathBuf};
 use serde::Deserialize;
 
 use super::split::{Part, split_bounds};
-use crate::imported::{clip_box, empty_frame, finish, format_err, view_index};
+use crate::imported::{Imported, clip_box, empty_frame, finish, format_err, view_index};
 use crate::selfmva::read_detections;
 use crossview_core::{CameraSpec, Detection, SceneSpec};
 use crossview_core::{Error, Result};
-
-pub use crate::imported::Imported;
 
 /// Scene name of WILDTRACK recordings.
 pub const SCENE_NAME: &str = "wildtrack";
