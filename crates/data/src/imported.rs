@@ -3,7 +3,7 @@
 use std::path::Path;
 
 use super::Recording;
-use crossview_core::{Error, Frame, Result, SceneSpec};
+use crossview_core::{CameraSpec, Error, Frame, Result, SceneSpec};
 
 /// An imported recording with what the importer had to repair.
 #[derive(Debug, Clone)]
@@ -66,6 +66,17 @@ pub(crate) fn view_index(
                 ),
             )
         })
+}
+
+/// A dataset's fixed scene: `cameras` in view-number order, all of one image size, in sync.
+pub(crate) fn dataset_scene(name: &str, cameras: &[&str], width: u32, height: u32) -> SceneSpec {
+    SceneSpec {
+        name: name.to_string(),
+        cameras: cameras
+            .iter()
+            .map(|c| CameraSpec::new(*c, width, height))
+            .collect(),
+    }
 }
 
 /// A frame of `cameras` empty batches: every camera reported, nobody seen yet.

@@ -15,9 +15,9 @@ use std::path::Path;
 
 use serde::Deserialize;
 
-use crate::imported::{Imported, clip_box, empty_frame, finish, format_err};
+use crate::imported::{Imported, clip_box, dataset_scene, empty_frame, finish, format_err};
 use crate::selfmva::read_detections;
-use crossview_core::{CameraSpec, Detection, Error, Result, SceneSpec};
+use crossview_core::{Detection, Error, Result, SceneSpec};
 
 /// Scene name of MVOR recordings.
 pub const SCENE_NAME: &str = "mvor";
@@ -32,19 +32,7 @@ pub const FRAMES: u64 = 732;
 
 /// The MVOR scene: 3 cameras of 640x480.
 pub fn scene() -> SceneSpec {
-    SceneSpec {
-        name: SCENE_NAME.to_string(),
-        cameras: CAMERA_NAMES
-            .iter()
-            .map(|name| CameraSpec {
-                offset: 0,
-                offset_ms: 0,
-                name: name.to_string(),
-                width: WIDTH,
-                height: HEIGHT,
-            })
-            .collect(),
-    }
+    dataset_scene(SCENE_NAME, &CAMERA_NAMES, WIDTH, HEIGHT)
 }
 
 /// The parts of the annotation file the import reads.

@@ -10,9 +10,11 @@ use std::path::{Path, PathBuf};
 use serde::Deserialize;
 
 use super::split::{Part, split_bounds};
-use crate::imported::{Imported, clip_box, empty_frame, finish, format_err, view_index};
+use crate::imported::{
+    Imported, clip_box, dataset_scene, empty_frame, finish, format_err, view_index,
+};
 use crate::selfmva::read_detections;
-use crossview_core::{CameraSpec, Detection, SceneSpec};
+use crossview_core::{Detection, SceneSpec};
 use crossview_core::{Error, Result};
 
 /// Scene name of WILDTRACK recordings.
@@ -35,19 +37,7 @@ pub(crate) const LAST_FRAME: u64 = 1995;
 
 /// The WILDTRACK scene: 7 cameras of 1920x1080 in `viewNum` order.
 pub fn scene() -> SceneSpec {
-    SceneSpec {
-        name: SCENE_NAME.to_string(),
-        cameras: CAMERA_NAMES
-            .iter()
-            .map(|name| CameraSpec {
-                offset: 0,
-                offset_ms: 0,
-                name: name.to_string(),
-                width: WIDTH,
-                height: HEIGHT,
-            })
-            .collect(),
-    }
+    dataset_scene(SCENE_NAME, &CAMERA_NAMES, WIDTH, HEIGHT)
 }
 
 /// The full sequence's frame ids, 0..=1995 step 5 — including the test frames that the public
